@@ -1,0 +1,80 @@
+"""The ``mcdenoise`` command: one subcommand per pipeline stage.
+
+Each subcommand lives in ``mcdenoise/cli/<name>.py`` and exposes ``add_parser(subparsers)`` and
+``run(args) -> int``. A subcommand whose issue has not landed says so and exits 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+from mcdenoise import __version__
+from mcdenoise.errors import McDenoiseError
+
+#: name -> one-line help. Order is the pipeline's.
+SUBCOMMANDS: dict[str, str] = {
+    "render": "render per-sample buffers and a reference from a Mitsuba 3 scene",
+    "dataset": "render a procedural training dataset with a scene-level split",
+    "train": "train a denoiser",
+    "eval": "evaluate denoisers and the OIDN baseline, write a report",
+    "denoise": "denoise an image folder or EXR",
+    "models": "list the registered denoisers",
+    "bench": "measure speed",
+    "repro": "reproduce paper experiments",
+    "demo": "run the main job end to end on a built-in default",
+}
+
+
+class NotLanded(Exception):
+    """Raised by a subcommand that has not been built yet."""
+
+
+def _not_landed_parser(sub: argparse._SubParsersAction, name: str, help_: str) -> None:
+    p = sub.add_parser(name, help=f"{help_} (not built yet)", add_help=True)
+    p.add_argument("rest", nargs=argparse.REMAINDER, help=argparse.SUPPRESS)
+    p.set_defaults(_run=lambda args, _n=name: _not_landed(_n))
+
+
+def _not_landed(name: str) -> int:
+    print(f"mcdenoise {name}: not built yet (its issue has not landed)", file=sys.stderr)
+    return 2
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="mcdenoise", description="Neural denoising of Monte Carlo renderings.")
+    parser.add_argument("--version", action="version", version=f"mcdenoise {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name, help_ in SUBCOMMANDS.items():
+        try:
+            mod = importlib.import_module(f"mcdenoise.cli.{name}")
+        except ModuleNotFoundError as e:
+            if e.name != f"mcdenoise.cli.{name}":
+                raise
+            _not_landed_parser(sub, name, help_)
+            continue
+        p = sub.add_parser(name, help=help_, description=(mod.__doc__ or help_).strip().splitlines()[0])
+        mod.add_parser(p)
+        p.set_defaults(_run=mod.run)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.command is None:
+        parser.print_help()
+        return 2
+    try:
+        return int(args._run(args) or 0)
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+    except McDenoiseError as e:
+        print(f"mcdenoise {args.command}: error: {e}", file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

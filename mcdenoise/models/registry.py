@@ -1,0 +1,158 @@
+"""Model registry: every denoiser registers by name with a dataclass config and named presets.
+
+Batch convention shared by all models (channel names from :mod:`mcdenoise.data.channels`):
+
+* pixel models (``input_kind == "pixels"``): ``batch[name]`` is ``(B, C, H, W)`` float32; per-pixel
+  variances are under ``variance_name(name)``.
+* sample models (``input_kind == "samples"``): ``batch[name]`` is ``(B, S, C, H, W)``;
+  ``batch["scene_features"]`` is ``(B, len(SCENE_FEATURES))`` (zeros when absent).
+
+Every model returns linear HDR radiance ``(B, 3, H, W)``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Any, Callable, ClassVar
+
+import torch
+from torch import nn
+
+from mcdenoise.data.channels import SCENE_FEATURES, base_name, is_variance_name, num_components
+
+__all__ = [
+    "Denoiser",
+    "ModelEntry",
+    "MODELS",
+    "register_model",
+    "build_model",
+    "list_models",
+    "synthetic_batch",
+]
+
+
+class Denoiser(nn.Module):
+    """Base class of all registered models.
+
+    Subclasses set ``input_kind`` and implement :meth:`required_channels` and :meth:`forward`.
+    """
+
+    input_kind: ClassVar[str] = "pixels"  # "pixels" or "samples"
+
+    def __init__(self, config: Any) -> None:
+        super().__init__()
+        self.config = config
+
+    def required_channels(self) -> list[str]:
+        """Names (vocabulary or ``*_variance``) that :meth:`forward` reads from the batch."""
+        raise NotImplementedError
+
+    def forward(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:  # (B, 3, H, W)
+        raise NotImplementedError
+
+
+@dataclass
+class ModelEntry:
+    name: str
+    cls: type[Denoiser]
+    config_cls: type
+    presets: dict[str, Callable[[], Any]]
+    paper: str = ""
+    description: str = ""
+
+    def config(self, preset: str = "small", **overrides: Any) -> Any:
+        if preset not in self.presets:
+            raise KeyError(f"model {self.name!r} has no preset {preset!r}; presets: {sorted(self.presets)}")
+        cfg = self.presets[preset]()
+        return dataclasses.replace(cfg, **overrides) if overrides else cfg
+
+
+MODELS: dict[str, ModelEntry] = {}
+
+
+def register_model(
+    name: str,
+    *,
+    config_cls: type,
+    presets: dict[str, Callable[[], Any]],
+    paper: str = "",
+    description: str = "",
+) -> Callable[[type[Denoiser]], type[Denoiser]]:
+    """Class decorator: ``@register_model("kpcn", config_cls=KPCNConfig, presets={...})``.
+
+    ``presets`` must contain at least ``"paper"`` and ``"small"``.
+    """
+
+    def deco(cls: type[Denoiser]) -> type[Denoiser]:
+        if name in MODELS:
+            raise ValueError(f"model {name!r} registered twice")
+        missing = {"paper", "small"} - set(presets)
+        if missing:
+            raise ValueError(f"model {name!r} lacks presets {sorted(missing)}")
+        MODELS[name] = ModelEntry(name, cls, config_cls, dict(presets), paper, description)
+        return cls
+
+    return deco
+
+
+def _load_all() -> None:
+    # Importing the package registers every model.
+    import mcdenoise.models  # noqa: F401
+
+
+def list_models() -> list[ModelEntry]:
+    _load_all()
+    return [MODELS[k] for k in sorted(MODELS)]
+
+
+def build_model(name: str, preset: str = "small", **overrides: Any) -> Denoiser:
+    """Instantiate a registered model from one of its presets, with field overrides."""
+    _load_all()
+    if name not in MODELS:
+        raise KeyError(f"unknown model {name!r}; registered: {sorted(MODELS)}")
+    entry = MODELS[name]
+    return entry.cls(entry.config(preset, **overrides))
+
+
+def synthetic_batch(
+    model: Denoiser,
+    *,
+    batch: int = 1,
+    spp: int = 4,
+    height: int = 16,
+    width: int = 16,
+    generator: torch.Generator | None = None,
+    dtype: torch.dtype = torch.float32,
+) -> dict[str, torch.Tensor]:
+    """Random but plausible inputs for ``model`` (positive radiance, unit normals, [0,1] albedo).
+
+    Used by tests and FLOP counting; never by training on real data.
+    """
+    g = generator if generator is not None else torch.Generator().manual_seed(0)
+    out: dict[str, torch.Tensor] = {}
+    sample = model.input_kind == "samples"
+    for name in model.required_channels():
+        if name == "scene_features":
+            continue
+        c = num_components(base_name(name))
+        shape = (batch, spp, c, height, width) if sample else (batch, c, height, width)
+        x = torch.rand(shape, generator=g, dtype=dtype)
+        base = base_name(name)
+        if is_variance_name(name):
+            x = x * 0.1
+        elif base in ("radiance", "diffuse", "specular"):
+            # Heavy-tailed like MC noise: a few bright outliers.
+            x = x * 2.0 / (1.0 - 0.9 * torch.rand(shape, generator=g, dtype=dtype))
+        elif base.startswith("normal"):
+            x = torch.nn.functional.normalize(x * 2 - 1, dim=-3)
+        elif base.startswith("depth"):
+            x = x * 10.0
+        out[name] = x
+    if sample and "diffuse" in out and "specular" in out and "radiance" in out:
+        out["radiance"] = out["diffuse"] + out["specular"]
+    if not sample and "diffuse" in out and "specular" in out and "radiance" in out:
+        out["radiance"] = out["diffuse"] + out["specular"]
+    if sample:
+        out["scene_features"] = torch.rand((batch, len(SCENE_FEATURES)), generator=g, dtype=dtype)
+    return out
