@@ -1,0 +1,266 @@
+"""Building blocks shared by the denoisers: per-sample fully connected stacks, a configurable U-Net,
+padding helpers and numerically stable kernel exponentiation.
+
+Conventions: per-pixel tensors are ``(B, C, H, W)``; per-sample tensors are ``(B, S, C, H, W)``.
+All activations are leaky ReLU with slope 0.01 (SBMC Sec. 3.5, layer paper Appendix B).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Sequence
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+__all__ = [
+    "LEAK",
+    "FCStack",
+    "UNet",
+    "pad_to_multiple",
+    "broadcast_samples",
+    "per_pixel_exp",
+    "per_destination_exp",
+    "signed_log1p",
+]
+
+#: Negative slope of every leaky ReLU in the SBMC and layer networks.
+LEAK = 0.01
+
+
+def signed_log1p(x: torch.Tensor) -> torch.Tensor:
+    """``sign(x) * log(1 + |x|)``: compresses HDR values and unit-free scalars of any sign."""
+    return torch.sign(x) * torch.log1p(torch.abs(x))
+
+
+def _init_conv(m: nn.Conv2d) -> None:
+    # He init for leaky-ReLU nets (SBMC Sec. 4.3), zero biases.
+    nn.init.kaiming_normal_(m.weight, a=LEAK, nonlinearity="leaky_relu")
+    if m.bias is not None:
+        nn.init.zeros_(m.bias)
+
+
+class FCStack(nn.Module):
+    """Fully connected layers applied independently at every sample/pixel (1x1 convolutions).
+
+    ``forward(x, context)`` takes ``x`` of shape ``(..., C_in, H, W)`` (any number of leading dims,
+    e.g. ``(B, S, C, H, W)``) and an optional per-pixel ``context`` ``(B, C_ctx, H, W)`` that is
+    logically concatenated to every sample's features. The first layer is split into a per-sample
+    and a per-pixel part, so the context is projected once per pixel instead of being copied S
+    times: same function and parameter count as ``FC(cat(x, context))``, less memory.
+
+    Args:
+        in_channels: ``C_in``.
+        widths: output width of each layer; the last one is the output width.
+        context_channels: ``C_ctx`` (0 for none).
+        last_activation: apply the leaky ReLU after the last layer too.
+    """
+
+    def __init__(
+        self,
+        in_channels: int,
+        widths: Sequence[int],
+        *,
+        context_channels: int = 0,
+        last_activation: bool = True,
+    ) -> None:
+        super().__init__()
+        if not widths:
+            raise ValueError("FCStack needs at least one layer")
+        self.in_channels = in_channels
+        self.context_channels = context_channels
+        self.first = nn.Conv2d(in_channels, widths[0], 1)
+        self.first_ctx = nn.Conv2d(context_channels, widths[0], 1, bias=False) if context_channels else None
+        layers: list[nn.Conv2d] = []
+        for a, b in zip(widths[:-1], widths[1:]):
+            layers.append(nn.Conv2d(a, b, 1))
+        self.rest = nn.ModuleList(layers)
+        self.last_activation = last_activation
+        self.out_channels = widths[-1]
+        for m in self.modules():
+            if isinstance(m, nn.Conv2d):
+                _init_conv(m)
+
+    def _act(self, x: torch.Tensor, is_last: bool) -> torch.Tensor:
+        return F.leaky_relu(x, LEAK) if (not is_last or self.last_activation) else x
+
+    def forward(self, x: torch.Tensor, context: torch.Tensor | None = None) -> torch.Tensor:
+        """``x`` (..., C_in, H, W), ``context`` (B, C_ctx, H, W) -> (..., widths[-1], H, W)."""
+        lead = x.shape[:-3]
+        c, h, w = x.shape[-3:]
+        if c != self.in_channels:
+            raise ValueError(f"FCStack expects {self.in_channels} input channels, got {c}")
+        y = self.first(x.reshape(-1, c, h, w))
+        if self.first_ctx is not None:
+            if context is None:
+                raise ValueError("FCStack was built with context channels but got no context")
+            ctx = self.first_ctx(context)  # (B, W0, H, W)
+            # Broadcast the per-pixel projection over all middle (sample) dims.
+            b = ctx.shape[0]
+            y = y.reshape(b, -1, *y.shape[-3:]) + ctx.unsqueeze(1)
+            y = y.reshape(-1, *y.shape[-3:])
+        n = len(self.rest)
+        y = self._act(y, n == 0)
+        for i, layer in enumerate(self.rest):
+            y = self._act(layer(y), i == n - 1)
+        return y.reshape(*lead, y.shape[-3], h, w)
+
+
+def pad_to_multiple(x: torch.Tensor, multiple: int, mode: str = "replicate") -> tuple[torch.Tensor, int, int]:
+    """Pad ``(B, C, H, W)`` at the bottom/right so H and W are multiples of ``multiple``.
+
+    Returns ``(padded, H, W)`` with the original size, to crop back with ``y[..., :H, :W]``.
+    """
+    h, w = x.shape[-2:]
+    ph = (-h) % multiple
+    pw = (-w) % multiple
+    if ph == 0 and pw == 0:
+        return x, h, w
+    return F.pad(x, (0, pw, 0, ph), mode=mode), h, w
+
+
+class _ConvBlock(nn.Sequential):
+    """3x3 zero-padded convolutions, each followed by a leaky ReLU."""
+
+    def __init__(self, in_channels: int, widths: Sequence[int]) -> None:
+        layers: list[nn.Module] = []
+        c = in_channels
+        for w in widths:
+            conv = nn.Conv2d(c, w, 3, padding=1)
+            _init_conv(conv)
+            layers += [conv, nn.LeakyReLU(LEAK)]
+            c = w
+        super().__init__(*layers)
+        self.out_channels = c
+
+
+class UNet(nn.Module):
+    """U-Net with 3x3 convs, 2x2 max-pooling, bilinear upsampling and concatenated skips.
+
+    Level ``i`` of the encoder runs ``encoder[i]`` convolutions at resolution ``H / 2**i`` and its
+    output is the skip of decoder level ``i``; the bottleneck runs at ``H / 2**len(encoder)``;
+    ``decoder[0]`` is the coarsest decoder level. A final 1x1 convolution maps to ``out_channels``
+    (no activation). Any H, W are accepted: the input is replicate-padded to a multiple of
+    ``2**len(encoder)`` and every output is cropped back.
+
+    Args:
+        in_channels, out_channels: channel counts of input and output.
+        encoder: widths of the convs of each encoder level, finest first.
+        bottleneck: widths of the convs at the coarsest resolution.
+        decoder: widths of the convs of each decoder level, coarsest first (same count as encoder).
+    """
+
+    def __init__(
+        self,
+        in_channels: int,
+        out_channels: int,
+        encoder: Sequence[Sequence[int]],
+        bottleneck: Sequence[int],
+        decoder: Sequence[Sequence[int]],
+    ) -> None:
+        super().__init__()
+        if len(encoder) != len(decoder):
+            raise ValueError("UNet needs as many decoder levels as encoder levels")
+        if any(len(e) == 0 for e in encoder) or any(len(d) == 0 for d in decoder) or not bottleneck:
+            raise ValueError("every UNet level needs at least one convolution")
+        self.levels = len(encoder)
+        self.enc = nn.ModuleList()
+        c = in_channels
+        skips = []
+        for widths in encoder:
+            blk = _ConvBlock(c, widths)
+            self.enc.append(blk)
+            c = blk.out_channels
+            skips.append(c)
+        self.bottleneck = _ConvBlock(c, bottleneck)
+        c = self.bottleneck.out_channels
+        self.dec = nn.ModuleList()
+        self.decoder_channels: list[int] = []
+        for i, widths in enumerate(decoder):
+            blk = _ConvBlock(c + skips[self.levels - 1 - i], widths)
+            self.dec.append(blk)
+            c = blk.out_channels
+            self.decoder_channels.append(c)
+        self.final = nn.Conv2d(c, out_channels, 1)
+        _init_conv(self.final)
+        self.out_channels = out_channels
+
+    @property
+    def multiple(self) -> int:
+        return 2**self.levels
+
+    def forward(
+        self, x: torch.Tensor, return_decoder: bool = False
+    ) -> torch.Tensor | tuple[torch.Tensor, list[torch.Tensor]]:
+        """``x`` (B, C_in, H, W) -> (B, C_out, H, W).
+
+        With ``return_decoder``, also the decoder features of every level, coarsest first, level
+        ``i`` cropped to ``ceil(H / 2**(levels-1-i)) x ceil(W / 2**(levels-1-i))``.
+        """
+        xp, h, w = pad_to_multiple(x, self.multiple)
+        skips = []
+        y = xp
+        for blk in self.enc:
+            y = blk(y)
+            skips.append(y)
+            y = F.max_pool2d(y, 2)
+        y = self.bottleneck(y)
+        decoded = []
+        for i, blk in enumerate(self.dec):
+            skip = skips[self.levels - 1 - i]
+            y = F.interpolate(y, size=skip.shape[-2:], mode="bilinear", align_corners=False)
+            y = blk(torch.cat([y, skip], dim=1))
+            decoded.append(y)
+        out = self.final(y)[..., :h, :w]
+        if not return_decoder:
+            return out
+        crops = []
+        for i, d in enumerate(decoded):
+            s = 2 ** (self.levels - 1 - i)
+            crops.append(d[..., : math.ceil(h / s), : math.ceil(w / s)])
+        return out, crops
+
+
+def broadcast_samples(x: torch.Tensor, spp: int) -> torch.Tensor:
+    """``(B, C, H, W)`` -> ``(B, spp, C, H, W)`` view (no copy)."""
+    return x.unsqueeze(1).expand(-1, spp, -1, -1, -1)
+
+
+def per_pixel_exp(logits: torch.Tensor) -> torch.Tensor:
+    """Exponentiate gather-kernel logits ``(B, S, K*K, H, W)`` after subtracting, per output pixel,
+    the max over its samples and taps.
+
+    A gather output pixel is normalised by the sum of its own weights only, so any per-pixel
+    constant cancels exactly and the largest weight of each pixel is 1 (no overflow/underflow).
+    """
+    m = logits.detach().amax(dim=(1, 2), keepdim=True)
+    return torch.exp(logits - m)
+
+
+def per_destination_exp(logits: torch.Tensor, kernel_size: int) -> torch.Tensor:
+    """Exponentiate splat-kernel logits ``(B, S, K*K, H, W)`` so that normalisation stays exact.
+
+    A splat output pixel ``u`` is normalised by the sum of all weights that land on ``u``, coming
+    from different samples at different pixels. Subtracting a per-sample max (as a softmax would)
+    rescales samples against each other and changes the result; a single global max is exact but
+    lets a dim region underflow next to a bright one. Here every tap is shifted by a constant that
+    depends only on its destination pixel ``u``: ``c(u) = max`` of all logits of all samples within
+    ``K x K`` of ``u``, an upper bound of every logit landing on ``u``. Tap ``t = (i, j)`` of a
+    sample at ``x`` lands on ``u = x + (i - r, j - r)`` (flat index ``i*K + j``, ``r = K // 2``),
+    the splat convention of :mod:`mcdenoise.ops.splat`. The shift is constant per destination and
+    so cancels exactly in the per-pixel normalisation.
+    """
+    b, s, kk, h, w = logits.shape
+    k = kernel_size
+    if kk != k * k:
+        raise ValueError(f"expected {k * k} kernel taps, got {kk}")
+    r = k // 2
+    with torch.no_grad():
+        m = logits.amax(dim=(1, 2)).unsqueeze(1)  # (B, 1, H, W): max logit of each source pixel
+        c = F.max_pool2d(m, k, stride=1, padding=r)  # (B, 1, H, W): max over sources near u
+        # Destination of tap (i, j) at x is x + (i - r, j - r): unfold gathers exactly that.
+        # Replicate padding: taps landing outside the image are dropped by the splat anyway.
+        cp = F.pad(c, (r, r, r, r), mode="replicate")
+        shift = F.unfold(cp, k).reshape(b, 1, kk, h, w)
+    return torch.exp(logits - shift)

@@ -1,0 +1,238 @@
+"""SBMC: sample-based Monte Carlo denoising with a kernel-splatting network (Gharbi et al. 2019).
+
+One network class, :class:`SBMC`, with two switches that give the paper's Table 2 ablations:
+
+==============  ===========  ======  ==========================================================
+name            per_sample   splat   what it is
+==============  ===========  ======  ==========================================================
+``sbmc``        True         True    the paper's model (Sec. 3, Algorithm 1)
+``sbmc_gather`` True         False   "Gather": per-sample kernels applied as gathers, each sample
+                                     index filtered as its own 1-spp image (Fig. 5a), then all
+                                     normalised together; NOT permutation invariant, by design
+``pixel_splat`` False        True    "PixelSplat": per-pixel mean and variance of the sample
+                                     features as a 1-spp input, kernels splatted
+``pixel_gather`` False       False   "PixelGather": the same pixel statistics, kernels gathered
+==============  ===========  ======  ==========================================================
+
+Pipeline (Algorithm 1): per-sample features -> ``E0 = FC(f)`` -> ``n`` times
+``{C = mean_s(E); C' = UNet(C); E = FC(E, C')}`` -> ``K = FC(E, C')`` (21x21 logits per sample) ->
+``I = sum K L / sum K`` (Eq. 1). Kernels act on linear radiance; the network sees log radiance.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+
+from mcdenoise.data.channels import SCENE_FEATURES, num_components
+from mcdenoise.models.blocks import FCStack, UNet, per_destination_exp, per_pixel_exp, signed_log1p
+from mcdenoise.models.registry import Denoiser, register_model
+
+__all__ = ["SBMCConfig", "SBMC", "SBMC_CHANNELS"]
+
+#: Per-sample channels SBMC reads (Appendix A, restricted to what our renderer records). The
+#: radiance split is log-transformed for the kernel predictor; ``radiance`` is also what is splatted.
+SBMC_CHANNELS: tuple[str, ...] = (
+    "radiance",
+    "diffuse",
+    "specular",
+    "albedo_diffuse",
+    "normal_diffuse",
+    "depth_diffuse",
+    "subpixel",
+    "lens",
+    "time",
+    "lobes",
+    "visibility",
+)
+
+#: Channels that are HDR or unbounded and are compressed with ``sign(x) log(1 + |x|)``.
+_LOG_CHANNELS = frozenset({"radiance", "diffuse", "specular", "depth_diffuse", "depth"})
+
+
+@dataclass
+class SBMCConfig:
+    """Configuration of :class:`SBMC` and its ablations."""
+
+    per_sample: bool = True
+    """True: one embedding and kernel per sample. False: reduce sample features to per-pixel mean and
+    variance and treat them as a 1-spp input (PixelGather / PixelSplat)."""
+    splat: bool = True
+    """True: kernels are splatted (Eq. 1). False: kernels are gathered (Table 2 "Gather")."""
+    channels: tuple[str, ...] = SBMC_CHANNELS
+    """Per-sample vocabulary channels fed to the network; must include ``radiance``."""
+    embed_width: int = 128
+    """D_E, width of sample embeddings and context features (Sec. 3.2: 128)."""
+    fc_width: int = 128
+    """Width of the hidden layers of every per-sample fully connected stack (Sec. 3.5: 128)."""
+    fc_layers: int = 3
+    """Layers per fully connected stack (Sec. 3.5: 3)."""
+    steps: int = 3
+    """Alternating context/embedding updates, each with its own U-Net (Sec. 3.2: 3)."""
+    unet_encoder: tuple[tuple[int, ...], ...] = ((128, 128), (256, 256))
+    """Conv widths of each U-Net encoder level, finest first (Fig. 6)."""
+    unet_bottleneck: tuple[int, ...] = (512, 512)
+    """Conv widths at the U-Net's coarsest level (Fig. 6)."""
+    unet_decoder: tuple[tuple[int, ...], ...] = ((256, 256), (128, 128))
+    """Conv widths of each U-Net decoder level, coarsest first (Fig. 6)."""
+    kernel_size: int = 21
+    """Side of the splat/gather kernel (Sec. 3.1: 21)."""
+    eps: float = 1e-8
+    """Added to the per-pixel weight sum before dividing (pixels no kernel reaches become 0)."""
+
+
+def _paper(**kw: object) -> SBMCConfig:
+    return SBMCConfig(**kw)  # type: ignore[arg-type]
+
+
+def _small(**kw: object) -> SBMCConfig:
+    return SBMCConfig(
+        embed_width=16,
+        fc_width=16,
+        fc_layers=2,
+        steps=2,
+        unet_encoder=((16,), (32,)),
+        unet_bottleneck=(32,),
+        unet_decoder=((32,), (16,)),
+        kernel_size=11,
+        **kw,  # type: ignore[arg-type]
+    )
+
+
+class SBMC(Denoiser):
+    """Sample-based kernel-splatting denoiser and its Table 2 ablations (see module docstring).
+
+    Input: per-sample channels ``(B, S, C, H, W)`` for each name in ``config.channels`` and
+    ``scene_features`` ``(B, 5)``. Output: linear HDR radiance ``(B, 3, H, W)``. Any S >= 1, H, W.
+    """
+
+    input_kind = "samples"
+
+    def __init__(self, config: SBMCConfig) -> None:
+        super().__init__(config)
+        cfg = config
+        if "radiance" not in cfg.channels:
+            raise ValueError("SBMC needs the 'radiance' channel: it is what the kernels filter")
+        if cfg.kernel_size % 2 != 1 or cfg.kernel_size < 1:
+            raise ValueError(f"kernel_size must be odd, got {cfg.kernel_size}")
+        if cfg.steps < 1 or cfg.fc_layers < 1:
+            raise ValueError("steps and fc_layers must be >= 1")
+        self.sample_features = sum(num_components(c) for c in cfg.channels)
+        n_in = (2 * self.sample_features if not cfg.per_sample else self.sample_features) + len(SCENE_FEATURES)
+        d = cfg.embed_width
+        hidden = [cfg.fc_width] * (cfg.fc_layers - 1)
+        self.embed0 = FCStack(n_in, hidden + [d])
+        self.unets = nn.ModuleList(
+            UNet(d, d, cfg.unet_encoder, cfg.unet_bottleneck, cfg.unet_decoder) for _ in range(cfg.steps)
+        )
+        self.embeds = nn.ModuleList(FCStack(d, hidden + [d], context_channels=d) for _ in range(cfg.steps))
+        k2 = cfg.kernel_size**2
+        self.kernel = FCStack(d, hidden + [k2], context_channels=d, last_activation=False)
+
+    def required_channels(self) -> list[str]:
+        return list(self.config.channels)
+
+    def features(self, batch: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
+        """Network input and the radiance to filter.
+
+        Returns ``(f, L)``: ``f`` is ``(B, S', F, H, W)`` and ``L`` is ``(B, S', 3, H, W)`` linear
+        radiance, with ``S' = S`` per sample or ``S' = 1`` (pixel mean) for the pixel ablations.
+        HDR channels and depth are ``sign(x) log(1 + |x|)`` compressed; scene features likewise
+        (their units vary by scene: degrees, world units) and are broadcast to every sample.
+        """
+        cfg = self.config
+        parts = []
+        for name in cfg.channels:
+            x = batch[name]
+            if x.dim() != 5:
+                raise ValueError(f"SBMC expects per-sample '{name}' of shape (B, S, C, H, W), got {tuple(x.shape)}")
+            parts.append(signed_log1p(x) if name in _LOG_CHANNELS else x)
+        f = torch.cat(parts, dim=2)
+        radiance = batch["radiance"]
+        b, s, _, h, w = f.shape
+        if not cfg.per_sample:
+            # Population variance: 0 at 1 spp rather than NaN.
+            mean = f.mean(dim=1, keepdim=True)
+            var = (f - mean).square().mean(dim=1, keepdim=True)
+            f = torch.cat([mean, var], dim=2)
+            radiance = radiance.mean(dim=1, keepdim=True)
+            s = 1
+        scene = batch.get("scene_features")
+        if scene is None:
+            scene = f.new_zeros(b, len(SCENE_FEATURES))
+        g = signed_log1p(scene.to(f.dtype))[:, None, :, None, None].expand(b, s, -1, h, w)
+        return torch.cat([f, g], dim=2), radiance
+
+    def kernel_logits(self, f: torch.Tensor) -> torch.Tensor:
+        """Algorithm 1 up to the kernel: ``f`` (B, S, F, H, W) -> logits (B, S, K*K, H, W)."""
+        e = self.embed0(f)
+        ctx = None
+        for unet, fc in zip(self.unets, self.embeds):
+            ctx = unet(e.mean(dim=1))  # mean over samples: permutation invariant, any S
+            e = fc(e, ctx)
+        return self.kernel(e, ctx)
+
+    def forward(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
+        """Denoise: per-sample buffers -> ``(B, 3, H, W)`` linear radiance."""
+        from mcdenoise.ops.splat import normalize_splat
+
+        cfg = self.config
+        f, radiance = self.features(batch)
+        logits = self.kernel_logits(f)
+        radiance = radiance.to(logits.dtype)
+        k = cfg.kernel_size
+        if cfg.splat:
+            from mcdenoise.ops.splat import splat
+
+            num, wsum = splat(radiance, per_destination_exp(logits, k))
+        else:
+            from mcdenoise.ops.gather import gather
+
+            # Each sample index is its own 1-spp image gathered with its own kernels (Fig. 5a); a
+            # ones channel gives the weight that fell inside the image for the normalisation.
+            b, s, _, h, w = radiance.shape
+            weights = per_pixel_exp(logits)
+            img = torch.cat([radiance, torch.ones_like(radiance[:, :, :1])], dim=2)
+            out = gather(img.reshape(b * s, 4, h, w), weights.reshape(b * s, k * k, h, w))
+            out = out.reshape(b, s, 4, h, w).sum(dim=1)
+            num, wsum = out[:, :3], out[:, 3:]
+        return normalize_splat(num, wsum, cfg.eps)
+
+
+_PAPER = "Gharbi et al., Sample-based Monte Carlo Denoising using a Kernel-Splatting Network, SIGGRAPH 2019"
+
+
+def _presets(**kw: object) -> dict:
+    return {"paper": lambda: _paper(**kw), "small": lambda: _small(**kw)}
+
+
+register_model(
+    "sbmc",
+    config_cls=SBMCConfig,
+    presets=_presets(),
+    paper=_PAPER + ", Sec. 3 / Algorithm 1",
+    description="per-sample embeddings + U-Net context (3 steps), per-sample 21x21 kernels splatted",
+)(SBMC)
+register_model(
+    "sbmc_gather",
+    config_cls=SBMCConfig,
+    presets=_presets(splat=False),
+    paper=_PAPER + ", Table 2 'Gather'",
+    description="SBMC ablation: per-sample kernels applied as gathers (not permutation invariant)",
+)(SBMC)
+register_model(
+    "pixel_splat",
+    config_cls=SBMCConfig,
+    presets=_presets(per_sample=False),
+    paper=_PAPER + ", Table 2 'PixelSplat'",
+    description="SBMC ablation: per-pixel mean/variance of sample features, kernels splatted",
+)(SBMC)
+register_model(
+    "pixel_gather",
+    config_cls=SBMCConfig,
+    presets=_presets(per_sample=False, splat=False),
+    paper=_PAPER + ", Table 2 'PixelGather'",
+    description="SBMC ablation: per-pixel mean/variance of sample features, kernels gathered",
+)(SBMC)
