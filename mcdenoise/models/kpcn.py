@@ -1,0 +1,246 @@
+"""KPCN and DPCN (Bako, Vogels et al. 2017): per-pixel denoising of a diffuse/specular split.
+
+Each branch (diffuse, specular; or one ``radiance`` branch for inputs without a split) is a plain
+stack of ``layers`` 5x5 convolutions with ReLU between them (Sec. 4.1, 5.2). Its input is built by
+:meth:`KPCN.features` from the stored buffers (Sec. 4.3, 5.1):
+
+* diffuse: irradiance ``c / (albedo + eps)``, ``eps = 0.00316``; specular and single-branch
+  radiance: ``log(1 + c)``;
+* x and y gradients of that colour and of normal, albedo and depth;
+* the colour variance carried through the same transform to first order (Eq. 5), reduced to one
+  channel by its luminance, and the normal, albedo and depth variances, one channel each;
+* depth divided by its per-image maximum (so it lies in [0, 1]).
+
+KPCN predicts a KxK kernel per pixel (softmax over the K^2 taps, Sec. 4.2) applied to the
+transformed noisy colour; DPCN predicts the transformed colour directly. The branches are
+recombined with Eq. 4: ``(albedo + eps) * diffuse + exp(specular) - 1``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+
+from mcdenoise.data.channels import variance_name
+from mcdenoise.models.registry import Denoiser, register_model
+from mcdenoise.ops.gather import gather
+from mcdenoise.ops.kernels import softmax_kernel
+
+__all__ = ["KPCNConfig", "KPCN", "kpcn_features", "FEATURES_PER_BRANCH"]
+
+#: Rec. 709 luminance weights, used to turn RGB variances into one channel (Sec. 5.1).
+_LUM = (0.2126, 0.7152, 0.0722)
+#: colour (3) + gradients x/y of colour, normal, albedo, depth (2 x 10) + colour variance (1) +
+#: normal, albedo, depth variances (3).
+FEATURES_PER_BRANCH = 27
+
+
+@dataclass
+class KPCNConfig:
+    """Configuration of one KPCN/DPCN network (both branches share it)."""
+
+    layers: int = 9
+    """Number of convolutions per branch, the last one linear (paper: L = 9)."""
+    channels: int = 100
+    """Width of every hidden layer (paper: 100)."""
+    conv_size: int = 5
+    """Spatial size of every convolution (paper: 5x5)."""
+    kernel_size: int = 21
+    """Side K of the predicted per-pixel filter (paper: 21); unused when ``direct``."""
+    direct: bool = False
+    """True: DPCN, the last layer outputs the (transformed) colour itself instead of a kernel."""
+    split: bool = True
+    """True: separate diffuse and specular branches (Sec. 4.3); False: one branch on ``radiance``."""
+    eps: float = 0.00316
+    """Added to the albedo before dividing (Sec. 4.3)."""
+
+
+def _lum(x: torch.Tensor) -> torch.Tensor:
+    """(B, 3, H, W) -> (B, 1, H, W) luminance."""
+    w = x.new_tensor(_LUM).view(1, 3, 1, 1)
+    return (x * w).sum(dim=1, keepdim=True)
+
+
+def _grad_xy(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Forward differences of (B, C, H, W); the last column/row gets 0 (no neighbour)."""
+    gx = torch.zeros_like(x)
+    gy = torch.zeros_like(x)
+    gx[..., :, :-1] = x[..., :, 1:] - x[..., :, :-1]
+    gy[..., :-1, :] = x[..., 1:, :] - x[..., :-1, :]
+    return gx, gy
+
+
+def kpcn_features(batch: dict[str, torch.Tensor], config: KPCNConfig) -> dict[str, torch.Tensor]:
+    """Network inputs per branch: name -> (B, FEATURES_PER_BRANCH, H, W); channels 0:3 are the colour.
+
+    Branch names are ``diffuse`` and ``specular`` (``split``) or ``radiance``.
+    """
+    eps = config.eps
+    albedo = batch["albedo"]
+    normal = batch["normal"]
+    depth = batch["depth"]
+    # Per-image scale to [0, 1]; the variance is scaled consistently. clamp: an all-miss crop.
+    dmax = depth.abs().amax(dim=(1, 2, 3), keepdim=True).clamp_min(1e-8)
+    depth_s = depth / dmax
+    feat_var = torch.cat(
+        [
+            batch[variance_name("normal")].mean(dim=1, keepdim=True),
+            _lum(batch[variance_name("albedo")]),
+            batch[variance_name("depth")] / dmax**2,
+        ],
+        dim=1,
+    )
+    feat_grads = [_grad_xy(f) for f in (normal, albedo, depth_s)]
+
+    def branch(color: torch.Tensor, var: torch.Tensor) -> torch.Tensor:
+        gx, gy = _grad_xy(color)
+        return torch.cat(
+            [color, gx, gy, *[g for pair in feat_grads for g in pair], _lum(var), feat_var], dim=1
+        )
+
+    out: dict[str, torch.Tensor] = {}
+    if config.split:
+        diffuse, specular = batch["diffuse"], batch["specular"].clamp_min(0)
+        out["diffuse"] = branch(diffuse / (albedo + eps), batch[variance_name("diffuse")] / (albedo + eps) ** 2)
+        # Eq. 5 with h(x) = log(1 + x): h'(x)^2 = 1 / (1 + x)^2.
+        out["specular"] = branch(torch.log1p(specular), batch[variance_name("specular")] / (1 + specular) ** 2)
+    else:
+        radiance = batch["radiance"].clamp_min(0)
+        out["radiance"] = branch(torch.log1p(radiance), batch[variance_name("radiance")] / (1 + radiance) ** 2)
+    return out
+
+
+def _out_of_image_taps(k: int, h: int, w: int, device: torch.device) -> torch.Tensor:
+    """(1, K*K, H, W) bool: True where tap (i-r, j-r) of pixel (y, x) falls outside the image."""
+    r = k // 2
+    off = torch.arange(-r, r + 1, device=device)
+    ys = torch.arange(h, device=device).view(1, 1, h, 1) + off.view(k, 1, 1, 1)  # (K, 1, H, 1)
+    xs = torch.arange(w, device=device).view(1, 1, 1, w) + off.view(1, k, 1, 1)  # (1, K, 1, W)
+    inside = (ys >= 0) & (ys < h) & (xs >= 0) & (xs < w)  # (K, K, H, W)
+    return (~inside).reshape(1, k * k, h, w)
+
+
+class _Branch(nn.Module):
+    """L convolutions, ReLU after all but the last (Sec. 4.1)."""
+
+    def __init__(self, config: KPCNConfig, in_ch: int, out_ch: int) -> None:
+        super().__init__()
+        pad = config.conv_size // 2
+        layers: list[nn.Module] = []
+        ch = in_ch
+        for _ in range(config.layers - 1):
+            layers += [nn.Conv2d(ch, config.channels, config.conv_size, padding=pad), nn.ReLU(inplace=True)]
+            ch = config.channels
+        layers.append(nn.Conv2d(ch, out_ch, config.conv_size, padding=pad))
+        self.net = nn.Sequential(*layers)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.net(x)
+
+
+class KPCN(Denoiser):
+    """KPCN / DPCN, split or single-branch, chosen by :class:`KPCNConfig`."""
+
+    input_kind = "pixels"
+
+    def __init__(self, config: KPCNConfig) -> None:
+        super().__init__(config)
+        if config.layers < 1 or config.kernel_size % 2 == 0:
+            raise ValueError(f"KPCN: need layers >= 1 and an odd kernel_size, got {config}")
+        out_ch = 3 if config.direct else config.kernel_size**2
+        names = ("diffuse", "specular") if config.split else ("radiance",)
+        self.branches = nn.ModuleDict({n: _Branch(config, FEATURES_PER_BRANCH, out_ch) for n in names})
+
+    def required_channels(self) -> list[str]:
+        colors = ["diffuse", "specular"] if self.config.split else ["radiance"]
+        names = colors + ["albedo", "normal", "depth"]
+        return names + [variance_name(n) for n in names]
+
+    def features(self, batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        """Branch name -> (B, 27, H, W) network input (see module docstring)."""
+        return kpcn_features(batch, self.config)
+
+    def forward_branches(self, batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        """Branch name -> (B, 3, H, W) denoised colour in the branch's transformed domain.
+
+        ``diffuse`` is irradiance (divided by albedo + eps), ``specular``/``radiance`` is
+        ``log(1 + c)``. Compare against :meth:`branch_targets` for the paper's per-branch L1
+        pre-training; :meth:`recombine` gives the final image.
+        """
+        out: dict[str, torch.Tensor] = {}
+        for name, x in self.features(batch).items():
+            z = self.branches[name](x)
+            if self.config.direct:
+                out[name] = z
+                continue
+            k = self.config.kernel_size
+            h, w = z.shape[-2:]
+            # Taps outside the image get no weight, so the softmax renormalises over the image
+            # instead of blending in zero padding at the borders.
+            z = z.masked_fill(_out_of_image_taps(k, h, w, z.device), float("-inf"))
+            out[name] = gather(x[:, :3], softmax_kernel(z))
+        return out
+
+    def branch_targets(self, reference: dict[str, torch.Tensor], batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        """Reference colours (B, 3, H, W) carried into each branch's domain with the noisy albedo."""
+        if self.config.split:
+            return {
+                "diffuse": reference["diffuse"] / (batch["albedo"] + self.config.eps),
+                "specular": torch.log1p(reference["specular"].clamp_min(0)),
+            }
+        return {"radiance": torch.log1p(reference["radiance"].clamp_min(0))}
+
+    def recombine(self, branches: dict[str, torch.Tensor], batch: dict[str, torch.Tensor]) -> torch.Tensor:
+        """Eq. 4: (albedo + eps) * diffuse + exp(specular) - 1 -> (B, 3, H, W) linear HDR."""
+        if self.config.split:
+            return (batch["albedo"] + self.config.eps) * branches["diffuse"] + torch.expm1(branches["specular"])
+        return torch.expm1(branches["radiance"])
+
+    def forward(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
+        return self.recombine(self.forward_branches(batch), batch)
+
+
+_PAPER = "Bako, Vogels et al., Kernel-Predicting Convolutional Networks for Denoising Monte Carlo Renderings, SIGGRAPH 2017"
+
+
+def _paper(**kw: object) -> KPCNConfig:
+    return KPCNConfig(layers=9, channels=100, conv_size=5, kernel_size=21, **kw)  # type: ignore[arg-type]
+
+
+def _small(**kw: object) -> KPCNConfig:
+    return KPCNConfig(layers=4, channels=24, conv_size=5, kernel_size=9, **kw)  # type: ignore[arg-type]
+
+
+@register_model(
+    "kpcn",
+    config_cls=KPCNConfig,
+    presets={"paper": _paper, "small": _small},
+    paper=_PAPER,
+    description="diffuse/specular branches, 9 conv x 100 ch, 21x21 softmax gather kernels, Eq. 4 recombination",
+)
+class KPCNModel(KPCN):
+    pass
+
+
+@register_model(
+    "dpcn",
+    config_cls=KPCNConfig,
+    presets={"paper": lambda: _paper(direct=True), "small": lambda: _small(direct=True)},
+    paper=_PAPER,
+    description="KPCN's network predicting the transformed colour directly (DPCN)",
+)
+class DPCNModel(KPCN):
+    pass
+
+
+@register_model(
+    "kpcn_single",
+    config_cls=KPCNConfig,
+    presets={"paper": lambda: _paper(split=False), "small": lambda: _small(split=False)},
+    paper=_PAPER,
+    description="one KPCN branch on log(1 + radiance) for inputs without a diffuse/specular split",
+)
+class KPCNSingleModel(KPCN):
+    pass
