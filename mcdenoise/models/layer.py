@@ -1,0 +1,321 @@
+"""Layer-embedding denoiser (Munkberg and Hasselgren, "Neural Denoising with Layer Embeddings", EGSR 2020).
+
+Pipeline (Sec. 3, Appendix A): per-sample features -> sample reducer (FC, 32 features) -> mean over
+samples -> U-Net -> 128 context features -> sample partitioner (FC on [embedding, context], softmax
+over L layers, divided by the sample count) -> per-layer sums of radiance, weight, embedding and
+occupancy (Eq. 2) -> kernel generator (FC on [layer embedding, context], 17x17 logits per layer) ->
+each layer's radiance, weight and occupancy splatted with the layer's kernel (Eq. 3) -> front-to-back
+alpha compositing (Eq. 4-5) or the weighted sum (Eq. 6).
+
+``layer_optimized`` (Sec. 6) replaces the 17x17 kernel by a 3-level hierarchy of 5x5 kernels: the
+layer buffers are average-pooled to 1/2 and 1/4 resolution, each level has its own kernel generator
+fed with the pooled layer embeddings and the U-Net decoder features at that resolution, every level
+is filtered and composited on its own, and the composited levels are upsampled and summed with
+trainable weights (Eq. 10).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+
+from mcdenoise.data.channels import SCENE_FEATURES, num_components
+from mcdenoise.models.blocks import FCStack, UNet, per_destination_exp, per_pixel_exp, signed_log1p
+from mcdenoise.models.registry import Denoiser, register_model
+
+__all__ = ["LayerConfig", "LayerDenoiser", "LAYER_CHANNELS"]
+
+#: Per-sample channels (Sec. 3 "Per-sample Processing": normal, depth, albedo, specular, roughness,
+#: lens position, time; motion vectors are per pixel in our format, so sub-pixel position stands in).
+#: With the derived circle of confusion this makes 20 floats per sample, as in the paper.
+LAYER_CHANNELS: tuple[str, ...] = (
+    "radiance",
+    "specular",
+    "albedo",
+    "normal",
+    "depth",
+    "roughness",
+    "lens",
+    "time",
+    "subpixel",
+)
+
+_LOG_CHANNELS = frozenset({"radiance", "diffuse", "specular", "depth", "depth_diffuse"})
+_AP = SCENE_FEATURES.index("aperture_radius")
+_FOCUS = SCENE_FEATURES.index("focus_distance")
+
+
+@dataclass
+class LayerConfig:
+    """Configuration of :class:`LayerDenoiser` (``layer``, ``layer_weighted``, ``layer_optimized``)."""
+
+    channels: tuple[str, ...] = LAYER_CHANNELS
+    """Per-sample vocabulary channels fed to the sample reducer; must include ``radiance``."""
+    circle_of_confusion: bool = True
+    """Append a per-sample circle-of-confusion feature computed from ``depth`` and the scene's
+    aperture and focus distance (needs ``depth`` in ``channels``)."""
+    layers: int = 2
+    """L, number of layers samples are partitioned into (Sec. 5: 2)."""
+    embed_width: int = 32
+    """Width of the sample embeddings (Appendix B: 32)."""
+    reducer_layers: int = 3
+    """Fully connected layers of the sample reducer (Appendix B: 3)."""
+    context_width: int = 128
+    """Context features produced by the U-Net (Appendix B: 128)."""
+    unet_encoder: tuple[tuple[int, ...], ...] = ((64, 64), (128,), (256,), (512,), (512,))
+    """Conv widths of each U-Net encoder level, finest first (Fig. 3)."""
+    unet_bottleneck: tuple[int, ...] = (512,)
+    """Conv widths at the U-Net's coarsest level."""
+    unet_decoder: tuple[tuple[int, ...], ...] = ((512, 512), (256, 256), (128, 128), (128, 128), (128, 128))
+    """Conv widths of each U-Net decoder level, coarsest first."""
+    partitioner_widths: tuple[int, ...] = (32, 16)
+    """Hidden widths of the sample partitioner; its last layer outputs L logits (Appendix B)."""
+    kernel_widths: tuple[int, ...] = (128, 128)
+    """Hidden widths of the kernel generator; its last layer outputs K*K logits (Appendix B)."""
+    kernel_size: int = 17
+    """Side of each layer's kernel (17 in the paper); 5 for the hierarchical variant."""
+    compositing: str = "alpha"
+    """"alpha": occupancy-tracked front-to-back compositing (Eq. 2-5). "weighted": Eq. 6."""
+    splat: bool = True
+    """Apply layer kernels as splats (the paper, following SBMC) or as gathers."""
+    hierarchical: bool = False
+    """Sec. 6: ``levels`` levels of ``kernel_size`` kernels at full, 1/2, 1/4... resolution (Eq. 10)."""
+    levels: int = 3
+    """Number of levels of the hierarchical variant."""
+    eps: float = 1e-6
+    """Added to the filtered occupancy (alpha) or weight sum (weighted) before dividing."""
+
+
+def _paper_layer(**kw: object) -> LayerConfig:
+    return LayerConfig(**kw)  # type: ignore[arg-type]
+
+
+def _paper_optimized(**kw: object) -> LayerConfig:
+    # Sec. 6: kernel generator 128 -> 32 features, U-Net's first two encoder convs at 32 and last
+    # four decoder convs at 64, 3 levels of 5x5 kernels.
+    return LayerConfig(
+        kernel_widths=(32, 32),
+        unet_encoder=((32, 32), (128,), (256,), (512,), (512,)),
+        unet_decoder=((512, 512), (256, 256), (128, 128), (64, 64), (64, 64)),
+        kernel_size=5,
+        hierarchical=True,
+        **kw,  # type: ignore[arg-type]
+    )
+
+
+def _small_common() -> dict:
+    return dict(
+        embed_width=8,
+        reducer_layers=2,
+        context_width=16,
+        unet_encoder=((16,), (24,)),
+        unet_bottleneck=(32,),
+        unet_decoder=((24,), (16,)),
+        partitioner_widths=(8,),
+    )
+
+
+def _small_layer(**kw: object) -> LayerConfig:
+    return LayerConfig(**_small_common(), kernel_widths=(16,), kernel_size=9, **kw)  # type: ignore[arg-type]
+
+
+def _small_optimized(**kw: object) -> LayerConfig:
+    common = _small_common()
+    # Three U-Net levels so that every pyramid level has decoder features at its resolution.
+    common.update(unet_encoder=((8,), (16,), (24,)), unet_bottleneck=(32,), unet_decoder=((24,), (16,), (16,)))
+    return LayerConfig(**common, kernel_widths=(8,), kernel_size=5, hierarchical=True, **kw)  # type: ignore[arg-type]
+
+
+class LayerDenoiser(Denoiser):
+    """Sample-partitioning layer denoiser.
+
+    Input: per-sample channels ``(B, S, C, H, W)`` for each name in ``config.channels`` and
+    ``scene_features`` ``(B, 5)``. Output: linear HDR radiance ``(B, 3, H, W)``. Any S >= 1, H, W.
+    """
+
+    input_kind = "samples"
+
+    def __init__(self, config: LayerConfig) -> None:
+        super().__init__(config)
+        cfg = config
+        if "radiance" not in cfg.channels:
+            raise ValueError("the layer denoiser needs the 'radiance' channel")
+        if cfg.circle_of_confusion and "depth" not in cfg.channels:
+            raise ValueError("circle_of_confusion needs the 'depth' channel")
+        if cfg.layers < 1:
+            raise ValueError(f"layers must be >= 1, got {cfg.layers}")
+        if cfg.compositing not in ("alpha", "weighted"):
+            raise ValueError(f"compositing must be 'alpha' or 'weighted', got {cfg.compositing!r}")
+        if cfg.kernel_size % 2 != 1:
+            raise ValueError(f"kernel_size must be odd, got {cfg.kernel_size}")
+        n_in = sum(num_components(c) for c in cfg.channels) + int(cfg.circle_of_confusion)
+        self.input_features = n_in
+        e = cfg.embed_width
+        self.reducer = FCStack(n_in, [e] * cfg.reducer_layers)
+        self.unet = UNet(e, cfg.context_width, cfg.unet_encoder, cfg.unet_bottleneck, cfg.unet_decoder)
+        self.partitioner = FCStack(
+            e, list(cfg.partitioner_widths) + [cfg.layers], context_channels=cfg.context_width, last_activation=False
+        )
+        k2 = cfg.kernel_size**2
+        if not cfg.hierarchical:
+            self.kernel_gen = FCStack(
+                e, list(cfg.kernel_widths) + [k2], context_channels=cfg.context_width, last_activation=False
+            )
+        else:
+            # Level i reads the U-Net decoder level at 1/2^i resolution, so the U-Net needs >= levels.
+            if cfg.levels < 1 or cfg.levels > len(cfg.unet_decoder):
+                raise ValueError(f"levels must be in 1..{len(cfg.unet_decoder)} (U-Net depth), got {cfg.levels}")
+            # Level 0 reads the U-Net output; coarser levels read the decoder level at their scale.
+            ctx_widths = [cfg.context_width] + [self.unet.decoder_channels[-1 - i] for i in range(1, cfg.levels)]
+            # Level 0's generator also predicts the Eq. 10 level weights (Sec. 6), hence + levels.
+            self.kernel_gens = nn.ModuleList(
+                FCStack(e, list(cfg.kernel_widths) + [k2 + (cfg.levels if i == 0 else 0)],
+                        context_channels=c, last_activation=False)
+                for i, c in enumerate(ctx_widths)
+            )
+
+    def required_channels(self) -> list[str]:
+        return list(self.config.channels)
+
+    def features(self, batch: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(f (B, S, F, H, W), radiance (B, S, 3, H, W))``: log-compressed HDR channels and
+        depth, other channels as stored, plus the circle of confusion
+        ``log(1 + a |1 - f / d|)`` (aperture radius ``a``, focus distance ``f``, depth ``d``; ``a``
+        on a miss), a unit-free stand-in for the paper's per-sample CoC.
+        """
+        cfg = self.config
+        parts = []
+        for name in cfg.channels:
+            x = batch[name]
+            if x.dim() != 5:
+                raise ValueError(f"layer: expects per-sample '{name}' of shape (B, S, C, H, W), got {tuple(x.shape)}")
+            parts.append(signed_log1p(x) if name in _LOG_CHANNELS else x)
+        if cfg.circle_of_confusion:
+            d = batch["depth"]
+            b = d.shape[0]
+            scene = batch.get("scene_features")
+            if scene is None:
+                scene = d.new_zeros(b, len(SCENE_FEATURES))
+            scene = scene.to(d.dtype)
+            ap = scene[:, _AP].abs().view(b, 1, 1, 1, 1)
+            focus = scene[:, _FOCUS].view(b, 1, 1, 1, 1)
+            hit = d > 0
+            ratio = torch.where(hit, focus / torch.where(hit, d, torch.ones_like(d)), torch.zeros_like(d))
+            parts.append(torch.log1p(ap * (1 - ratio).abs()))
+        return torch.cat(parts, dim=2), batch["radiance"]
+
+    # -- Eq. 2: partition samples into layers ----------------------------------------------------
+
+    def partition(
+        self, e: torch.Tensor, ctx: torch.Tensor, radiance: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Sample embeddings ``e`` (B, S, E, H, W), context (B, Cc, H, W), radiance (B, S, 3, H, W)
+        -> per-layer radiance (B, L, 3, H, W), weight (B, L, 1, H, W), occupancy (B, L, 1, H, W),
+        embedding (B, L, E, H, W), all sums over samples (Appendix A, lines 9-17)."""
+        s = e.shape[1]
+        w = torch.softmax(self.partitioner(e, ctx), dim=2) / s  # (B, S, L, H, W)
+        l_rad = torch.einsum("bslhw,bschw->blchw", w, radiance)
+        l_emb = torch.einsum("bslhw,bschw->blchw", w, e)
+        l_w = w.sum(dim=1).unsqueeze(2)  # (B, L, 1, H, W)
+        # A sample in layer k makes layers 0..k "see through" to it: n_j = sum_{k >= j} w_k.
+        l_n = l_w.flip(1).cumsum(1).flip(1)
+        return l_rad, l_w, l_n, l_emb
+
+    def _filter(self, logits: torch.Tensor, l_rad: torch.Tensor, l_w: torch.Tensor, l_n: torch.Tensor) -> torch.Tensor:
+        """Eq. 3 then Eq. 4-6 at one resolution: logits (B, L, K*K, h, w) -> composited (B, 3, h, w)."""
+        cfg = self.config
+        b, nl, kk, h, w = logits.shape
+        k = cfg.kernel_size
+        vals = torch.cat([l_rad, l_w, l_n], dim=2)  # (B, L, 5, h, w)
+        if cfg.splat:
+            from mcdenoise.ops.splat import splat
+
+            # One shift shared by all layers so the weighted sum (Eq. 6) stays exact too.
+            weights = per_destination_exp(logits, k)
+            num, _ = splat(vals.reshape(b * nl, 1, 5, h, w), weights.reshape(b * nl, 1, kk, h, w))
+        else:
+            from mcdenoise.ops.gather import gather
+
+            weights = per_pixel_exp(logits)
+            num = gather(vals.reshape(b * nl, 5, h, w), weights.reshape(b * nl, kk, h, w))
+        num = num.reshape(b, nl, 5, h, w)
+        rad, wbar, nbar = num[:, :, :3], num[:, :, 3:4], num[:, :, 4:5]
+        if cfg.compositing == "weighted":
+            return rad.sum(dim=1) / (wbar.sum(dim=1) + cfg.eps)
+        out = torch.zeros_like(rad[:, 0])
+        transmit = torch.ones_like(wbar[:, 0])
+        for j in range(nl):
+            n = nbar[:, j] + cfg.eps
+            out = out + transmit * rad[:, j] / n
+            transmit = transmit * (1 - wbar[:, j] / n)
+        return out
+
+    def forward(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
+        """Denoise: per-sample buffers -> ``(B, 3, H, W)`` linear radiance."""
+        cfg = self.config
+        f, radiance = self.features(batch)
+        e = self.reducer(f)
+        radiance = radiance.to(e.dtype)
+        if not cfg.hierarchical:
+            ctx = self.unet(e.mean(dim=1))
+            l_rad, l_w, l_n, l_emb = self.partition(e, ctx, radiance)
+            return self._filter(self.kernel_gen(l_emb, ctx), l_rad, l_w, l_n)
+        return self._forward_hierarchical(e, radiance)
+
+    def _forward_hierarchical(self, e: torch.Tensor, radiance: torch.Tensor) -> torch.Tensor:
+        """Sec. 6: filter and composite each pyramid level on its own (G_i), then Eq. 10."""
+        from mcdenoise.ops.multiscale import build_pyramid, combine_levels
+
+        cfg = self.config
+        ctx, decoded = self.unet(e.mean(dim=1), return_decoder=True)
+        l_rad, l_w, l_n, l_emb = self.partition(e, ctx, radiance)
+        b, nl = l_rad.shape[:2]
+        # Box-downsampled sums keep every ratio of Eq. 4 meaningful (a mean of sums is a scaled sum).
+        stacked = torch.cat([l_rad, l_w, l_n, l_emb], dim=2).flatten(1, 2)
+        pyramid = build_pyramid(stacked, cfg.levels)
+        ctxs = [ctx] + [decoded[-1 - i] for i in range(1, cfg.levels)]
+        kk = cfg.kernel_size**2
+        levels = []
+        lam = None
+        for i, (buf, c) in enumerate(zip(pyramid, ctxs)):
+            hh, ww = buf.shape[-2:]
+            buf = buf.reshape(b, nl, -1, hh, ww)
+            rad, lw, ln, emb = buf[:, :, :3], buf[:, :, 3:4], buf[:, :, 4:5], buf[:, :, 5:]
+            logits = self.kernel_gens[i](emb, c)
+            if i == 0:
+                # The first layer's level-0 generator also outputs the per-pixel level weights.
+                lam = torch.softmax(logits[:, 0, kk:], dim=1)
+                logits = logits[:, :, :kk]
+            levels.append(self._filter(logits, rad, lw, ln))
+        assert lam is not None
+        return combine_levels(levels, lam)
+
+
+_PAPER = "Munkberg and Hasselgren, Neural Denoising with Layer Embeddings, EGSR 2020"
+
+register_model(
+    "layer",
+    config_cls=LayerConfig,
+    presets={"paper": _paper_layer, "small": _small_layer},
+    paper=_PAPER + ", Sec. 3 / Appendix A-B",
+    description="samples partitioned into 2 layers, 17x17 splat kernel per layer, front-to-back alpha compositing",
+)(LayerDenoiser)
+register_model(
+    "layer_weighted",
+    config_cls=LayerConfig,
+    presets={
+        "paper": lambda: _paper_layer(compositing="weighted"),
+        "small": lambda: _small_layer(compositing="weighted"),
+    },
+    paper=_PAPER + ", Sec. 3.1 Eq. 6",
+    description="layer denoiser with the weighted-sum compositing of Eq. 6 instead of alpha blending",
+)(LayerDenoiser)
+register_model(
+    "layer_optimized",
+    config_cls=LayerConfig,
+    presets={"paper": _paper_optimized, "small": _small_optimized},
+    paper=_PAPER + ", Sec. 6",
+    description="layer denoiser with 3-level hierarchical 5x5 kernels and reduced widths",
+)(LayerDenoiser)
