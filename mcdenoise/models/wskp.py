@@ -1,0 +1,194 @@
+"""WSKP (Fan, Wang, Huo, Bao 2021): weight-sharing kernel prediction for low-spp real-time denoising.
+
+Per frame (Sec. 4, 5.1):
+
+1. albedo demodulation: the filtered signal is the HDR irradiance ``radiance / (albedo + eps)``;
+2. the ImportanceNet (RepVGG blocks, 14 channels) reads a 10-channel LDR input: tonemapped colour
+   (3), albedo (3), normal scaled to [0, 1] (3), depth scaled to [0, 1] per image (1);
+3. it predicts N importance maps and N fusion logits; map i becomes a softmax kernel of size
+   ``k_i`` (Eq. 3), the irradiance is filtered with each (Eq. 4) and the results are averaged with
+   the per-pixel softmax of the fusion logits (Eq. 5) -- all inside
+   :func:`mcdenoise.ops.importance.fused_importance_filter`;
+4. the albedo is multiplied back.
+
+Temporal accumulation (Sec. 4.1) runs before the network on sequences and is kept apart from the
+per-frame forward: :func:`temporal_accumulate` (re-exported from :mod:`mcdenoise.ops.temporal`).
+
+``wskp_mr`` is the multi-resolution variant of Sec. 5.2 (model in :mod:`mcdenoise.models.wskp_mr`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from mcdenoise.models.registry import Denoiser, register_model
+from mcdenoise.ops.importance import fused_importance_filter
+from mcdenoise.ops.temporal import temporal_accumulate
+
+__all__ = ["WSKPConfig", "WSKP", "RepVGGBlock", "wskp_input", "tonemap_ldr", "temporal_accumulate"]
+
+_PAPER = "Fan, Wang, Huo, Bao, Real-time Monte Carlo Denoising with Weight Sharing Kernel Prediction Network, EGSR 2021"
+#: Network input: LDR colour, albedo, normal, depth (Sec. 5.1).
+INPUT_CHANNELS = 10
+
+
+def tonemap_ldr(x: torch.Tensor) -> torch.Tensor:
+    """HDR -> [0, 1): Reinhard ``x / (1 + x)`` then gamma 1/2.2 (any shape)."""
+    x = x.clamp_min(0)
+    # +1e-8 keeps the gamma's derivative finite at 0.
+    return (x / (1 + x) + 1e-8) ** (1 / 2.2)
+
+
+def wskp_input(batch: dict[str, torch.Tensor], eps: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """Network input (B, 10, H, W) and HDR irradiance (B, 3, H, W) from the stored buffers."""
+    radiance = batch["radiance"]
+    albedo = batch["albedo"]
+    depth = batch["depth"]
+    dmax = depth.abs().amax(dim=(1, 2, 3), keepdim=True).clamp_min(1e-8)
+    x = torch.cat([tonemap_ldr(radiance), albedo, (batch["normal"] + 1) * 0.5, depth / dmax], dim=1)
+    return x, radiance / (albedo + eps)
+
+
+class RepVGGBlock(nn.Module):
+    """Training-time block: 5x5, 3x3 and 1x1 conv+BN branches, plus BN identity when shapes allow,
+    summed and (optionally) ReLU'd (WSKP Sec. 4.1, after Ding et al. 2021).
+
+    :meth:`reparameterize` folds all branches into one 5x5 convolution with bias.
+    ``forward``: (B, in_ch, H, W) -> (B, out_ch, H, W).
+    """
+
+    SIZES = (5, 3, 1)
+
+    def __init__(self, in_ch: int, out_ch: int, activation: bool = True) -> None:
+        super().__init__()
+        self.in_ch, self.out_ch, self.activation = in_ch, out_ch, activation
+        self.convs = nn.ModuleList(nn.Conv2d(in_ch, out_ch, k, padding=k // 2, bias=False) for k in self.SIZES)
+        self.bns = nn.ModuleList(nn.BatchNorm2d(out_ch) for _ in self.SIZES)
+        self.identity = nn.BatchNorm2d(out_ch) if in_ch == out_ch else None
+        self.fused: nn.Conv2d | None = None
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if self.fused is not None:
+            y = self.fused(x)
+        else:
+            y = sum(bn(conv(x)) for conv, bn in zip(self.convs, self.bns))
+            if self.identity is not None:
+                y = y + self.identity(x)
+        return F.relu(y) if self.activation else y
+
+    @staticmethod
+    def _fold(weight: torch.Tensor, bn: nn.BatchNorm2d) -> tuple[torch.Tensor, torch.Tensor]:
+        """Conv weight (O, I, k, k) followed by eval-mode BN -> 5x5 weight and bias."""
+        std = (bn.running_var + bn.eps).sqrt()
+        scale = bn.weight / std
+        pad = (5 - weight.shape[-1]) // 2
+        w = F.pad(weight, (pad, pad, pad, pad)) * scale.view(-1, 1, 1, 1)
+        return w, bn.bias - bn.running_mean * scale
+
+    @torch.no_grad()
+    def reparameterize(self) -> None:
+        """Replace the branches by one equivalent 5x5 conv (uses BN running statistics)."""
+        if self.fused is not None:
+            return
+        ref = self.convs[0].weight
+        weight = torch.zeros((self.out_ch, self.in_ch, 5, 5), device=ref.device, dtype=ref.dtype)
+        bias = torch.zeros(self.out_ch, device=ref.device, dtype=ref.dtype)
+        for conv, bn in zip(self.convs, self.bns):
+            w, b = self._fold(conv.weight, bn)
+            weight += w
+            bias += b
+        if self.identity is not None:
+            eye = torch.zeros((self.out_ch, self.in_ch, 1, 1), device=ref.device, dtype=ref.dtype)
+            eye[torch.arange(self.out_ch), torch.arange(self.in_ch)] = 1
+            w, b = self._fold(eye, self.identity)
+            weight += w
+            bias += b
+        fused = nn.Conv2d(self.in_ch, self.out_ch, 5, padding=2).to(device=ref.device, dtype=ref.dtype)
+        fused.weight.copy_(weight)
+        fused.bias.copy_(bias)
+        self.fused = fused
+        del self.convs, self.bns, self.identity
+        self.identity = None
+
+
+@dataclass
+class WSKPConfig:
+    """Configuration of the single-resolution WSKP denoiser."""
+
+    blocks: int = 6
+    """Number of RepVGG blocks of the ImportanceNet (paper: 6, or 3 for the faster variant)."""
+    channels: int = 14
+    """Output channels of every block but the last (paper: 14)."""
+    kernel_sizes: tuple[int, ...] = (3, 5, 7, 9, 11, 13)
+    """Filter sizes of the fused kernels, one importance map and one fusion weight each (paper: 3..13)."""
+    eps: float = 0.00316
+    """Added to the albedo before demodulation (the paper gives none; KPCN's value)."""
+
+
+class WSKP(Denoiser):
+    """ImportanceNet + importance-map kernels + kernel fusion, see the module docstring."""
+
+    input_kind = "pixels"
+
+    def __init__(self, config: WSKPConfig) -> None:
+        super().__init__(config)
+        if config.blocks < 1 or not config.kernel_sizes:
+            raise ValueError(f"WSKP: need blocks >= 1 and at least one kernel size, got {config}")
+        n = len(config.kernel_sizes)
+        chans = [INPUT_CHANNELS] + [config.channels] * (config.blocks - 1) + [2 * n]
+        # The last block outputs logits (importance and fusion), so no ReLU there.
+        self.net = nn.Sequential(
+            *(RepVGGBlock(chans[i], chans[i + 1], activation=i < config.blocks - 1) for i in range(config.blocks))
+        )
+
+    def required_channels(self) -> list[str]:
+        return ["radiance", "albedo", "normal", "depth"]
+
+    def features(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
+        """(B, 10, H, W) ImportanceNet input: LDR colour, albedo, normal, depth."""
+        return wskp_input(batch, self.config.eps)[0]
+
+    def predict(self, batch: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
+        """Importance maps and fusion logits, each (B, N, H, W) with N = len(kernel_sizes)."""
+        z = self.net(self.features(batch))
+        n = len(self.config.kernel_sizes)
+        return z[:, :n], z[:, n:]
+
+    def forward(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
+        x, irradiance = wskp_input(batch, self.config.eps)
+        z = self.net(x)
+        n = len(self.config.kernel_sizes)
+        filtered = fused_importance_filter(irradiance, z[:, :n], z[:, n:], sizes=tuple(self.config.kernel_sizes))
+        return filtered * (batch["albedo"] + self.config.eps)
+
+    def reparameterize(self) -> "WSKP":
+        """Fold every RepVGG block into one 5x5 conv for inference; puts the model in eval mode."""
+        self.eval()
+        for block in self.net:
+            block.reparameterize()
+        return self
+
+    temporal_accumulate = staticmethod(temporal_accumulate)
+
+
+@register_model(
+    "wskp",
+    config_cls=WSKPConfig,
+    presets={
+        "paper": lambda: WSKPConfig(blocks=6),
+        "paper3": lambda: WSKPConfig(blocks=3),
+        "small": lambda: WSKPConfig(blocks=2, channels=8, kernel_sizes=(3, 5, 7)),
+    },
+    paper=_PAPER,
+    description="RepVGG ImportanceNet -> 6 importance maps -> fused 3..13 softmax kernels on demodulated irradiance",
+)
+class WSKPModel(WSKP):
+    pass
+
+
+# Registers wskp_mr; kept in its own module because it shares only the inputs with WSKP.
+from mcdenoise.models import wskp_mr as _wskp_mr  # noqa: E402,F401
