@@ -355,10 +355,11 @@ class SampleWriter:
                     d = np.asarray(mm[ty, :, k : k + chunk], dtype=np.float64) - shift[:, None]
                     acc += d.sum(axis=1)
                     acc2 += (d * d).sum(axis=1)
-                m = acc / s
-                v = (acc2 - s * m * m) / ((s - 1) * s) if s > 1 else np.zeros_like(m)
-                v = np.maximum(v, 0.0)
-                m = m + shift
+                with np.errstate(invalid="ignore", over="ignore"):  # NaN/Inf samples: reported on read
+                    m = acc / s
+                    v = (acc2 - s * m * m) / ((s - 1) * s) if s > 1 else np.zeros_like(m)
+                    v = np.maximum(v, 0.0)
+                    m = m + shift
                 # (ntx, C, T, T) -> (C, T, ntx*T)
                 mean[:, ty * t : (ty + 1) * t] = m.transpose(1, 2, 0, 3).reshape(c, t, ntx * t)
                 var[:, ty * t : (ty + 1) * t] = v.transpose(1, 2, 0, 3).reshape(c, t, ntx * t)
