@@ -133,7 +133,7 @@ def test_per_branch_pretraining_then_finetune_step() -> None:
     tg = model.branch_targets(ref, b)
     loss = sum((br[k] - tg[k]).abs().mean() for k in br)
     loss.backward()
-    assert all(p.grad is not None for p in model.parameters())
+    assert all(p.grad is not None and torch.isfinite(p.grad).all() for p in model.parameters())
     opt.step()
     opt.zero_grad()
     out = model(b)

@@ -112,14 +112,22 @@ def kpcn_features(batch: dict[str, torch.Tensor], config: KPCNConfig) -> dict[st
     return out
 
 
-def _out_of_image_taps(k: int, h: int, w: int, device: torch.device) -> torch.Tensor:
-    """(1, K*K, H, W) bool: True where tap (i-r, j-r) of pixel (y, x) falls outside the image."""
+def _mask_out_of_image_taps(z: torch.Tensor, k: int) -> torch.Tensor:
+    """(B, K*K, H, W) logits -> same with -inf wherever tap (i-r, j-r) of a pixel leaves the image.
+
+    Built as a row term (K, H) plus a column term (K, W) broadcast into the sum, so no
+    K*K x H x W mask is allocated (it would be ~1 GB at 1080p with K = 21).
+    """
+    b, _, h, w = z.shape
     r = k // 2
-    off = torch.arange(-r, r + 1, device=device)
-    ys = torch.arange(h, device=device).view(1, 1, h, 1) + off.view(k, 1, 1, 1)  # (K, 1, H, 1)
-    xs = torch.arange(w, device=device).view(1, 1, 1, w) + off.view(1, k, 1, 1)  # (1, K, 1, W)
-    inside = (ys >= 0) & (ys < h) & (xs >= 0) & (xs < w)  # (K, K, H, W)
-    return (~inside).reshape(1, k * k, h, w)
+    off = torch.arange(-r, r + 1, device=z.device)
+    ys = torch.arange(h, device=z.device).view(1, h) + off.view(k, 1)  # (K, H)
+    xs = torch.arange(w, device=z.device).view(1, w) + off.view(k, 1)  # (K, W)
+    neg = torch.tensor(float("-inf"), dtype=z.dtype, device=z.device)
+    zero = torch.zeros((), dtype=z.dtype, device=z.device)
+    row = torch.where((ys >= 0) & (ys < h), zero, neg).view(1, k, 1, h, 1)
+    col = torch.where((xs >= 0) & (xs < w), zero, neg).view(1, 1, k, 1, w)
+    return (z.view(b, k, k, h, w) + row + col).view(b, k * k, h, w)
 
 
 class _Branch(nn.Module):
@@ -175,11 +183,9 @@ class KPCN(Denoiser):
             if self.config.direct:
                 out[name] = z
                 continue
-            k = self.config.kernel_size
-            h, w = z.shape[-2:]
             # Taps outside the image get no weight, so the softmax renormalises over the image
             # instead of blending in zero padding at the borders.
-            z = z.masked_fill(_out_of_image_taps(k, h, w, z.device), float("-inf"))
+            z = _mask_out_of_image_taps(z, self.config.kernel_size)
             out[name] = gather(x[:, :3], softmax_kernel(z))
         return out
 
