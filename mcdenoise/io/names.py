@@ -4,6 +4,9 @@ Recognised naming schemes (``SCHEMES``):
 
 * ``mcdenoise`` -- ours: ``<vocabulary name>.<component>`` (``radiance.R``, ``normal.X``,
   ``depth.Y``, ``radiance_variance.G``).
+Alpha (``A``) of a recognised layer is dropped; other components a table entry does not claim
+stay under the EXR layer name (``"image"`` for top-level channels).
+
 * ``cycles`` -- Blender Cycles multi-layer EXR with denoising data: ``<ViewLayer>.Noisy Image.R``,
   ``<ViewLayer>.Denoising Albedo.R``, ``<ViewLayer>.Denoising Normal.X``,
   ``<ViewLayer>.Denoising Depth.Z``. Any number of leading ``<prefix>.`` segments (view layer,
@@ -178,10 +181,12 @@ def group_channels(
             pairs = [(f"{layer}.{c}" if layer else c, cmap[c]) for c in comps if c in cmap]
             pairs.sort(key=lambda p: order.index(p[1]))
             scale = 1.0 / spp if (rename.per_sample_variance and spp) else 1.0
-            if target in out:
-                continue  # first source wins (e.g. two view layers): keep the first
-            out[target] = (pairs, scale)
-            continue
+            if target not in out:  # first source wins (e.g. two view layers)
+                out[target] = (pairs, scale)
+            # Components the entry does not claim (pbrt's top-level u, v...) are kept; alpha is not.
+            comps = [c for c in comps if c not in cmap and c != "A"]
+            if not comps:
+                continue
         target = layer if layer else "image"
         if _is_vocabulary(layer):
             order = get_channel(layer).components
