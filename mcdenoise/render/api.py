@@ -323,7 +323,8 @@ class _Prepared:
     shutter_time: float
     cam_start: np.ndarray | None = None
     cam_end: np.ndarray | None = None
-    motion: dict[str, tuple[Any, np.ndarray]] = field(default_factory=dict)  # param key -> (base, translation)
+    # param key (to_world or vertex_positions) -> (base value as float64 array, translation)
+    motion: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
     params: Any = None
     restore_camera: Any = None
 
@@ -364,12 +365,18 @@ def _prepare(scene: Any, settings: RenderSettings, camera_to_world: np.ndarray |
         params = mi.traverse(scene)
         keys = set(params.keys())
         for shape_id, tr in settings.object_motion.items():
+            tr = np.asarray(tr, dtype=np.float64).reshape(3)
             key = f"{shape_id}.to_world"
-            if key not in keys:
-                movable = sorted(k[: -len(".to_world")] for k in keys if k.endswith(".to_world") and not k.startswith("sensor"))
-                raise SceneError(f"object_motion: no movable shape with id {shape_id!r} (shapes with a to_world: {movable})")
-            base = mi.ScalarTransform4f(np.array(mi.Transform4f(params[key]).matrix, dtype=np.float64).reshape(4, 4).tolist())
-            prep.motion[key] = (base, np.asarray(tr, dtype=np.float64).reshape(3))
+            vkey = f"{shape_id}.vertex_positions"
+            if key in keys:
+                m = np.array(mi.Transform4f(params[key]).matrix, dtype=np.float64).reshape(4, 4)
+                prep.motion[key] = (m, tr)
+            elif vkey in keys:
+                # Meshes without a to_world parameter (cube, obj, ply): move the vertices.
+                prep.motion[vkey] = (np.array(params[vkey], dtype=np.float64).reshape(-1, 3), tr)
+            else:
+                movable = sorted({k.rsplit(".", 1)[0] for k in keys if k.endswith((".to_world", ".vertex_positions"))} - {"sensor"})
+                raise SceneError(f"object_motion: no movable shape with id {shape_id!r} (movable shapes: {movable})")
         prep.params = params
     return prep
 
@@ -377,9 +384,7 @@ def _prepare(scene: Any, settings: RenderSettings, camera_to_world: np.ndarray |
 def _restore(scene: Any, prep: _Prepared) -> None:
     mi = mitsuba()
     if prep.motion:
-        for key, (base, _) in prep.motion.items():
-            prep.params[key] = mi.Transform4f(base)
-        prep.params.update()
+        _pose_objects(prep, 0.0)
     if prep.restore_camera is not None:
         sp = mi.traverse(prep.sensor)
         sp["to_world"] = prep.restore_camera
@@ -387,10 +392,15 @@ def _restore(scene: Any, prep: _Prepared) -> None:
 
 
 def _pose_objects(prep: _Prepared, t: float) -> None:
-    """Move every animated shape to normalised shutter time ``t``."""
+    """Move every animated shape to normalised shutter time ``t`` (0 = the scene as loaded)."""
     mi = mitsuba()
     for key, (base, tr) in prep.motion.items():
-        prep.params[key] = mi.Transform4f(mi.ScalarTransform4f().translate((tr * t).tolist()) @ base)
+        if key.endswith(".to_world"):
+            m = base.copy()
+            m[:3, 3] += tr * t
+            prep.params[key] = mi.Transform4f(m.tolist())
+        else:
+            prep.params[key] = mi.Float((base + tr * t).astype(np.float32).reshape(-1))
     prep.params.update()
 
 
