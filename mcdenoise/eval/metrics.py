@@ -269,5 +269,5 @@ def compute_metrics(x: Array, y: Array, names: Sequence[str] | None = None, *, b
         if name not in METRICS:
             raise KeyError(f"unknown metric {name!r}; known: {sorted(METRICS)}")
         v = METRICS[name](x, y, border=border)
-        out[name] = float(v)
+        out[name] = float(v.detach()) if isinstance(v, torch.Tensor) else float(v)
     return out

@@ -4,9 +4,6 @@ Recognised naming schemes (``SCHEMES``):
 
 * ``mcdenoise`` -- ours: ``<vocabulary name>.<component>`` (``radiance.R``, ``normal.X``,
   ``depth.Y``, ``radiance_variance.G``).
-Alpha (``A``) of a recognised layer is dropped; other components a table entry does not claim
-stay under the EXR layer name (``"image"`` for top-level channels).
-
 * ``cycles`` -- Blender Cycles multi-layer EXR with denoising data: ``<ViewLayer>.Noisy Image.R``,
   ``<ViewLayer>.Denoising Albedo.R``, ``<ViewLayer>.Denoising Normal.X``,
   ``<ViewLayer>.Denoising Depth.Z``. Any number of leading ``<prefix>.`` segments (view layer,
@@ -23,7 +20,9 @@ stay under the EXR layer name (``"image"`` for top-level channels).
   ``alb``, ``nrm``); see :func:`parse_oidn_filename`. Top-level ``R, G, B`` of such a file take the
   feature's vocabulary name (``nrm`` components map R, G, B -> X, Y, Z).
 
-Layers whose names are not recognised are returned under their own (EXR) layer name.
+Layers whose names are not recognised are returned under their own (EXR) layer name. Alpha
+(``A``) of a recognised layer is dropped; other components a table entry does not claim stay under
+the EXR layer name (``"image"`` for top-level channels).
 """
 
 from __future__ import annotations
