@@ -363,3 +363,39 @@ def test_manifest_and_dataset(tmp_path: Path):
     os.remove(m)
     with pytest.raises(FormatError, match="no such file"):
         Dataset(tmp_path)
+
+
+# ----------------------------------------------------------------------------- crop sampler
+
+
+def test_crop_sampler(image):
+    from mcdenoise.data.sampler import CropSampler
+
+    folder, smp, ref = image
+    im = read_image(folder)
+    s = CropSampler([im], crop=8, channels=["radiance", "depth"], spp_range=(2, 3), seed=5)
+    a, b = s[3], s[3]
+    assert a.origin == b.origin and a.samples == b.samples  # a pure function of (seed, i)
+    assert any(s[i].origin != a.origin for i in range(4, 10))
+    y0, x0 = a.origin
+    assert len(a.samples) in (2, 3) and a.samples == sorted(set(a.samples))
+    np.testing.assert_array_equal(a.inputs["radiance"], smp["radiance"][a.samples][:, :, y0 : y0 + 8, x0 : x0 + 8])
+    np.testing.assert_array_equal(a.reference["radiance"], ref["radiance"][:, y0 : y0 + 8, x0 : x0 + 8])
+    assert a.scene_features.shape == (5,) and a.scene_features[0] == np.float32(39.3)
+
+    # Pixel inputs from a sample subset are recomputed from exactly that subset.
+    p = CropSampler([im], crop=8, channels=["radiance", "radiance_variance"], kind="pixels", spp_range=(2, 2))
+    c = p[0]
+    y0, x0 = c.origin
+    mean, var = pixel_stats(smp["radiance"][c.samples][:, :, y0 : y0 + 8, x0 : x0 + 8])
+    np.testing.assert_array_equal(c.inputs["radiance"], mean)
+    np.testing.assert_array_equal(c.inputs["radiance_variance"], var)
+    # Without spp_range the stored noisy.exr is used.
+    d = CropSampler([im], crop=8, channels=["albedo_variance"], kind="pixels")[1]
+    y0, x0 = d.origin
+    np.testing.assert_allclose(d.inputs["albedo_variance"], im.read_noisy(["albedo_variance"])["albedo_variance"][:, y0 : y0 + 8, x0 : x0 + 8])
+
+    with pytest.raises(ValueError, match="smaller than"):
+        CropSampler([im], crop=22, channels=["radiance"])
+    with pytest.raises(ValueError, match="spp_range"):
+        CropSampler([im], crop=8, channels=["radiance"], spp_range=(1, 9))
