@@ -147,3 +147,11 @@ def test_odd_size_and_dtype_float64() -> None:
     with torch.no_grad():
         out = model(b)
     assert out.shape == (1, 3, 7, 5) and out.dtype == torch.float64
+
+
+def test_missing_channel_named() -> None:
+    model = build_model("kpcn", "small")
+    b = synthetic_batch(model, height=5, width=5)
+    del b["specular_variance"]
+    with pytest.raises(ValueError, match="specular_variance"):
+        model(b)

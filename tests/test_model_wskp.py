@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import pytest
 import torch
 from torch import nn
 
@@ -138,3 +139,17 @@ def test_temporal_accumulation_is_exposed_and_separate() -> None:
     assert model.temporal_accumulate is temporal_accumulate
     # It is not part of the per-frame inputs.
     assert "motion" not in model.required_channels()
+
+
+def test_missing_channel_named_and_folded_checkpoint_loads() -> None:
+    model = build_model("wskp", "small")
+    b = synthetic_batch(model, height=6, width=6)
+    del b["depth"]
+    with pytest.raises(ValueError, match="depth"):
+        model(b)
+    folded = build_model("wskp", "small").reparameterize()
+    fresh = build_model("wskp", "small").reparameterize()
+    fresh.load_state_dict(folded.state_dict())
+    b = synthetic_batch(model, height=6, width=6)
+    with torch.no_grad():
+        torch.testing.assert_close(fresh(b), folded(b))

@@ -168,6 +168,9 @@ class KPCN(Denoiser):
 
     def features(self, batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         """Branch name -> (B, 27, H, W) network input (see module docstring)."""
+        missing = [n for n in self.required_channels() if n not in batch]
+        if missing:
+            raise ValueError(f"{type(self).__name__}: batch lacks channels {missing}")
         return kpcn_features(batch, self.config)
 
     def forward_branches(self, batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:

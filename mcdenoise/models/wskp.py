@@ -45,6 +45,9 @@ def tonemap_ldr(x: torch.Tensor) -> torch.Tensor:
 
 def wskp_input(batch: dict[str, torch.Tensor], eps: float) -> tuple[torch.Tensor, torch.Tensor]:
     """Network input (B, 10, H, W) and HDR irradiance (B, 3, H, W) from the stored buffers."""
+    missing = [n for n in ("radiance", "albedo", "normal", "depth") if n not in batch]
+    if missing:
+        raise ValueError(f"WSKP: batch lacks channels {missing}")
     radiance = batch["radiance"]
     albedo = batch["albedo"]
     depth = batch["depth"]
@@ -166,7 +169,11 @@ class WSKP(Denoiser):
         return filtered * (batch["albedo"] + self.config.eps)
 
     def reparameterize(self) -> "WSKP":
-        """Fold every RepVGG block into one 5x5 conv for inference; puts the model in eval mode."""
+        """Fold every RepVGG block into one 5x5 conv for inference; puts the model in eval mode.
+
+        The state dict changes keys (``net.i.fused.*``): to load a folded checkpoint, build the
+        model, call this, then ``load_state_dict``.
+        """
         self.eval()
         for block in self.net:
             block.reparameterize()
