@@ -399,3 +399,26 @@ def test_crop_sampler(image):
         CropSampler([im], crop=22, channels=["radiance"])
     with pytest.raises(ValueError, match="spp_range"):
         CropSampler([im], crop=8, channels=["radiance"], spp_range=(1, 9))
+
+
+def test_writer_abort_and_extra_noisy(tmp_path: Path, image):
+    _, smp, _ = image
+    meta = _meta(smp)
+    with pytest.raises(KeyError):
+        with SampleWriter(tmp_path / "aborted", meta, tile=8) as w:
+            w.write("radiance", smp["radiance"])
+            w.write("normal", smp["radiance"])  # not in meta.channels
+    assert list(tmp_path.iterdir()) == [tmp_path / "img"]  # no folder, no temp leftovers
+    w = SampleWriter(tmp_path / "extra", meta, tile=8)
+    for name, arr in smp.items():
+        w.write(name, arr)
+    pos = np.arange(3 * 21 * 27, dtype=np.float32).reshape(3, 21, 27)
+    noisy = w.noisy_from_samples()
+    out = w.finish(extra_noisy={"position": pos})
+    got = read_image(out).read_noisy()
+    np.testing.assert_array_equal(got["position"], pos)
+    np.testing.assert_array_equal(got["radiance"], noisy["radiance"])
+    # A noisy.exr lacking a channel meta.json lists is refused on read.
+    write_exr(out / "noisy.exr", {"radiance": pos})
+    with pytest.raises(FormatError, match="missing channel 'albedo' listed in meta.json"):
+        read_image(out).read_noisy(["radiance"])

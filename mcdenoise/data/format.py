@@ -336,6 +336,11 @@ class SampleWriter:
             mm[ty, :, s0:s1, :, r0:r1, :] = block
             y += r1 - r0
 
+    def noisy_from_samples(self) -> dict[str, np.ndarray]:
+        """Per-pixel ``name`` (mean) and ``name_variance`` (variance of the mean, see
+        :func:`pixel_stats`) ``(C, H, W)`` of every channel, from the samples written so far."""
+        return self._noisy_from_disk()
+
     def _noisy_from_disk(self) -> dict[str, np.ndarray]:
         """Mean and variance of the mean of every channel, streamed one band of tile rows at a time."""
         h, w, s = self.meta.height, self.meta.width, self.meta.spp
@@ -372,15 +377,26 @@ class SampleWriter:
         *,
         noisy: dict[str, np.ndarray] | None = None,
         reference: dict[str, np.ndarray] | None = None,
+        extra_noisy: dict[str, np.ndarray] | None = None,
     ) -> Path:
         """Write ``noisy.exr`` (computed from the samples when None), ``reference.exr``, ``meta.json``
-        and move the folder into place. Returns the final folder."""
+        and move the folder into place. Returns the final folder.
+
+        ``extra_noisy`` adds per-pixel-only layers ``(C, H, W)`` (e.g. ``position``, ``motion``) to
+        the computed or given noisy buffers.
+        """
         if self._done:
             raise RuntimeError("SampleWriter.finish called twice")
         for mm in self._maps.values():
             mm.flush()
         if noisy is None:
             noisy = self._noisy_from_disk()
+        if extra_noisy:
+            clash = set(extra_noisy) & set(noisy)
+            if clash:
+                self.abort()
+                raise ValueError(f"{self.folder}: extra_noisy repeats layers {sorted(clash)}")
+            noisy = {**noisy, **extra_noisy}
         self._maps.clear()
         try:
             _write_rest(self.tmp, self.meta, noisy, reference, has_samples=True)
@@ -444,6 +460,9 @@ def _write_rest(
     from mcdenoise.io.exr import write_exr
 
     noisy = _check_pixel_layers("noisy", noisy, meta)
+    missing = [c for c in meta.channels if c not in noisy]
+    if missing:
+        raise ValueError(f"noisy: no layer for channel(s) {missing} of meta.channels")
     attrs = {"mcdenoise_format_version": FORMAT_VERSION, "spp": meta.spp}
     write_exr(tmp / NOISY_FILE, noisy, attributes=attrs)
     if reference is not None:
@@ -745,6 +764,10 @@ class ImageFolder:
                 if arr.shape[1:] != (self.meta.height, self.meta.width):
                     raise FormatError(path, f"shape mismatch: layer {name!r} is {arr.shape[1]}x{arr.shape[2]}, "
                                             f"meta.json says {self.meta.height}x{self.meta.width}")
+            if key == "noisy":
+                for name in self.meta.channels:
+                    if name not in layers:
+                        raise FormatError(path, f"missing channel {name!r} listed in meta.json (has: {', '.join(sorted(layers))})")
             if self.cache:
                 self._cache[key] = layers
         names = list(layers) if channels is None else list(channels)
