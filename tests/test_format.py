@@ -254,6 +254,14 @@ def test_truncated_and_corrupt_samples(image):
     with pytest.raises(FormatError) as err:
         SampleReader(samples)
     assert "corrupt JSON header" in _one_line(err, samples)
+    samples.write_bytes(data.replace(b'"dtype": "float32"', b'"dtypX": "float32"', 1))
+    with pytest.raises(FormatError) as err:
+        SampleReader(samples)
+    assert "corrupt header" in _one_line(err, samples)
+    samples.write_bytes(data.replace(b'"dtype": "float32"', b'"dtype": "float64"', 1))
+    with pytest.raises(FormatError) as err:
+        SampleReader(samples)
+    assert "unsupported dtype 'float64'" in _one_line(err, samples)
 
 
 def test_missing_channel_and_shape_mismatch(image):

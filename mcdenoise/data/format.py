@@ -580,7 +580,20 @@ class SampleReader:
             raise FormatError(self.path, f"header says version {h.get('version')}, expected {FORMAT_VERSION}")
         if self.tiles != (math.ceil(self.height / self.tile), math.ceil(self.width / self.tile)):
             raise FormatError(self.path, f"tile grid {self.tiles} does not cover {self.height}x{self.width}")
-        self.channels: list[str] = [e["name"] for e in entries]
+        try:
+            self.channels: list[str] = [str(e["name"]) for e in entries]
+            end = self._check_entries(entries)
+        except (KeyError, TypeError, ValueError) as exc:
+            raise FormatError(self.path, f"corrupt header: missing or bad channel field {exc}") from None
+        if size < end:
+            raise FormatError(self.path, f"truncated: {size} bytes, the header needs {end}")
+        self.scene_features: dict[str, float] = dict(h.get("scene_features", {}))
+        self.provenance: dict[str, Any] = dict(h.get("provenance", {}))
+        self.bytes_read = 0
+        self.meta: ImageMeta | None = None  # set by ImageFolder
+
+    def _check_entries(self, entries: list[dict[str, Any]]) -> int:
+        """Validate the channel entries against the vocabulary; returns the end of the last section."""
         end = 0
         for e in entries:
             name = e["name"]
@@ -596,13 +609,10 @@ class SampleReader:
             want = self.tiles[0] * self.tiles[1] * self.spp * c * self.tile ** 2 * np.dtype(e["dtype"]).itemsize
             if e["nbytes"] != want:
                 raise FormatError(self.path, f"channel {name!r}: {e['nbytes']} bytes, shape needs {want}")
+            if not isinstance(e["offset"], int) or e["offset"] < 0:
+                raise FormatError(self.path, f"channel {name!r}: bad offset {e['offset']!r}")
             end = max(end, e["offset"] + e["nbytes"])
-        if size < end:
-            raise FormatError(self.path, f"truncated: {size} bytes, the header needs {end}")
-        self.scene_features: dict[str, float] = dict(h.get("scene_features", {}))
-        self.provenance: dict[str, Any] = dict(h.get("provenance", {}))
-        self.bytes_read = 0
-        self.meta = None  # set by ImageFolder
+        return end
 
     def __repr__(self) -> str:
         return f"SampleReader({str(self.path)!r}, spp={self.spp}, {self.height}x{self.width}, channels={self.channels})"
@@ -646,6 +656,8 @@ class SampleReader:
             samples: a slice or a list of sample indices (any order, repeats allowed).
             sanitize: replace NaN/Inf by 0 with a warning instead of raising FormatError.
         """
+        if isinstance(channels, str):
+            raise TypeError(f"channels must be a list of names, got the string {channels!r}")
         names = list(self.channels if channels is None else channels)
         if crop is None:
             crop = (0, 0, self.height, self.width)
@@ -770,6 +782,8 @@ class ImageFolder:
                         raise FormatError(path, f"missing channel {name!r} listed in meta.json (has: {', '.join(sorted(layers))})")
             if self.cache:
                 self._cache[key] = layers
+        if isinstance(channels, str):
+            raise TypeError(f"channels must be a list of names, got the string {channels!r}")
         names = list(layers) if channels is None else list(channels)
         y0, x0, hh, ww = crop if crop is not None else (0, 0, self.meta.height, self.meta.width)
         if hh < 1 or ww < 1 or y0 < 0 or x0 < 0 or y0 + hh > self.meta.height or x0 + ww > self.meta.width:
