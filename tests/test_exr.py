@@ -205,3 +205,30 @@ def test_preview(tmp_path: Path, kind, exposure, value, expected):
     assert tonemap(np.full((3, 1, 1), value), exposure=exposure, kind=kind)[0, 0, 0] * 255 == pytest.approx(expected, abs=0.5)
     with pytest.raises(ValueError, match="tonemap"):
         write_preview(tmp_path / "x.png", rgb, tonemap="aces")
+
+
+@pytest.mark.render
+def test_real_mitsuba_aov_file(tmp_path: Path):
+    """An EXR written by Mitsuba 3 itself (aov integrator, scalar variant: no LLVM needed)."""
+    mi = pytest.importorskip("mitsuba")
+    mi.set_variant("scalar_rgb")
+    scene = mi.load_dict({
+        "type": "scene",
+        "integrator": {"type": "aov", "aovs": "dd.y:depth,nn:sh_normal,albedo:albedo", "img": {"type": "path"}},
+        "sensor": {"type": "perspective", "to_world": mi.ScalarTransform4f().look_at(origin=[0, 0, 4], target=[0, 0, 0], up=[0, 1, 0]),
+                   "film": {"type": "hdrfilm", "width": 8, "height": 6},
+                   "sampler": {"type": "independent", "sample_count": 2}},
+        "sphere": {"type": "sphere", "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.2, 0.4, 0.6]}}},
+        "light": {"type": "constant"},
+    })
+    mi.render(scene)
+    path = tmp_path / "mitsuba.exr"
+    scene.sensors()[0].film().bitmap().write(str(path))
+    got = read_exr(path)
+    assert {"radiance", "depth", "normal", "albedo"} <= set(got)
+    assert got["depth"].shape == (1, 6, 8) and got["normal"].shape == (3, 6, 8)
+    centre = (slice(None), 3, 4)
+    assert got["depth"][centre][0] == pytest.approx(3.0, abs=0.05)  # camera at z=4, unit sphere
+    np.testing.assert_allclose(got["albedo"][centre], [0.2, 0.4, 0.6], atol=1e-3)
+    # Pixel-averaged normals are not unit length; at the centre the sphere faces the camera (+z).
+    assert got["normal"][centre][2] > 0.9 and 0.9 < np.linalg.norm(got["normal"][centre]) <= 1.0 + 1e-5
