@@ -80,6 +80,10 @@ def test_round_trip_exact(image):
     got_ref = im.read_reference()
     for name in ref:
         np.testing.assert_array_equal(got_ref[name], ref[name])
+    # The raw tiled section is memory-mappable: (tiles_y, tiles_x, spp, C, tile, tile).
+    mm = im.samples.memmap("depth")
+    assert mm.shape == (3, 4, 4, 1, 8, 8)
+    assert mm[1, 2, 3, 0, 4, 5] == smp["depth"][3, 0, 8 + 4, 16 + 5]
     # The header carries the scene features and provenance too.
     assert im.samples.scene_features == {"fov": 39.3, "aperture_radius": 0.0}
     assert im.samples.provenance == {"scene": "cornell", "seed": 7, "renderer": "test"}
