@@ -232,3 +232,22 @@ def test_real_mitsuba_aov_file(tmp_path: Path):
     np.testing.assert_allclose(got["albedo"][centre], [0.2, 0.4, 0.6], atol=1e-3)
     # Pixel-averaged normals are not unit length; at the centre the sphere faces the camera (+z).
     assert got["normal"][centre][2] > 0.9 and 0.9 < np.linalg.norm(got["normal"][centre]) <= 1.0 + 1e-5
+
+
+def test_image_from_renderer_exrs(tmp_path: Path, layers):
+    from mcdenoise.data.convert import image_from_exr
+    from mcdenoise.data.format import read_image
+
+    files = []
+    for name in ("radiance", "albedo", "normal"):
+        fn = tmp_path / oidn_filename("kitchen", name, 8)
+        write_exr_raw(fn, {c: layers[name][i] for i, c in enumerate("RGB")})
+        files.append(fn)
+    ref = tmp_path / oidn_filename("kitchen", "radiance", None)
+    write_exr_raw(ref, {c: layers["radiance"][i] * 0.5 for i, c in enumerate("RGB")})
+    im = read_image(image_from_exr(files, tmp_path / "img", reference=[ref], scene="kitchen"))
+    assert im.meta.spp == 8 and im.meta.channels == ["radiance", "albedo", "normal"] and im.samples is None
+    _exact(im.read_noisy(), {k: layers[k] for k in ("radiance", "albedo", "normal")})
+    np.testing.assert_array_equal(im.read_reference()["radiance"], layers["radiance"] * 0.5)
+    with pytest.raises(FormatError, match="already read"):
+        image_from_exr(files + files[:1], tmp_path / "dup")
