@@ -97,8 +97,8 @@ def test_torch_matches_numpy_and_is_differentiable():
 
 def test_gradcheck_float64():
     rng = np.random.default_rng(1)
-    x = torch.tensor(rng.random((1, 2, 12, 12)) * 2, requires_grad=True)
-    y = torch.tensor(rng.random((1, 2, 12, 12)) * 2)
+    x = torch.tensor(rng.random((1, 1, 11, 12)) * 2, requires_grad=True)
+    y = torch.tensor(rng.random((1, 1, 11, 12)) * 2)
     for fn in (M.ssim, M.smape, M.relmse, M.psnr):
         assert torch.autograd.gradcheck(lambda t: fn(t, y), (x,), eps=1e-6, atol=1e-6), fn.__name__
 
