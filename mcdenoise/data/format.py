@@ -346,7 +346,7 @@ class SampleWriter:
         h, w, s = self.meta.height, self.meta.width, self.meta.spp
         t = self.tile
         out: dict[str, np.ndarray] = {}
-        chunk = 16  # samples per pass: bounds the float64 working set
+        chunk = 8  # samples per pass: bounds the float64 working set
         for name, mm in self._maps.items():
             nty, ntx, _, c = mm.shape[:4]
             mean = np.zeros((c, nty * t, ntx * t), np.float32)
