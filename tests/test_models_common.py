@@ -11,7 +11,7 @@ from mcdenoise.models.registry import list_models, build_model, synthetic_batch
 
 #: The issue's list. A model missing from the registry fails here instead of going untested.
 EXPECTED = {
-    "kpcn", "dpcn", "sbmc", "sbmc_gather", "pixel_gather", "pixel_splat",
+    "kpcn", "dpcn", "kpcn_single", "layer_weighted", "sbmc", "sbmc_gather", "pixel_gather", "pixel_splat",
     "layer", "layer_optimized", "wskp", "wskp_mr",
 }
 ALL = sorted(e.name for e in list_models())

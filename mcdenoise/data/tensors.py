@@ -11,15 +11,9 @@ from typing import Sequence
 import numpy as np
 import torch
 
-from mcdenoise.data.channels import SCENE_FEATURES
 from mcdenoise.errors import FormatError
 
-__all__ = ["scene_feature_vector", "image_batch"]
-
-
-def scene_feature_vector(scene_features: dict[str, float]) -> np.ndarray:
-    """``(len(SCENE_FEATURES),)`` float32 in ``SCENE_FEATURES`` order; absent features are 0."""
-    return np.array([float(scene_features.get(k, 0.0)) for k in SCENE_FEATURES], dtype=np.float32)
+__all__ = ["image_batch"]
 
 
 def image_batch(
@@ -48,7 +42,7 @@ def image_batch(
             raise FormatError(folder.path, "this model needs per-sample buffers but the folder has no samples file")
         arrays = reader.read(names, crop=crop, samples=samples)
         out = {k: torch.from_numpy(np.ascontiguousarray(v))[None].to(device) for k, v in arrays.items()}
-        feats = scene_feature_vector(folder.meta.scene_features)
+        feats = folder.meta.scene_feature_vector()
         out["scene_features"] = torch.from_numpy(feats)[None].to(device)
         return out
     if input_kind == "pixels":
