@@ -559,14 +559,14 @@ def _trace_chunk(
             comps[k] = [v]
         else:
             comps[k] = [v[i] for i in range(len(v))]
-    if reduce:
-        comps = {k: [dr.block_sum(c, spp) for c in cs] for k, cs in comps.items()}
     flat = [c for cs in comps.values() for c in cs]
     dr.eval(*flat)
     res: dict[str, np.ndarray] = {}
     for k, cs in comps.items():
         if reduce:
-            arr = np.stack([np.asarray(c, dtype=np.float64) for c in cs], 0).reshape(len(cs), h, W)
+            # Summed here rather than with dr.block_sum, which is ~6x slower than the trace on LLVM.
+            arr = np.stack([np.asarray(c).reshape(h * W, spp).sum(axis=1, dtype=np.float64) for c in cs], 0)
+            arr = arr.reshape(len(cs), h, W)
         else:
             arr = np.stack([np.asarray(c, dtype=np.float32) for c in cs], 0)  # (C, h*W*spp)
             arr = arr.reshape(len(cs), h, W, spp).transpose(3, 0, 1, 2)

@@ -1,0 +1,373 @@
+"""Renderer tests on tiny renders (<= 32x32, 4 spp), one loaded scene per module fixture."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytestmark = pytest.mark.render
+
+FIXTURE_XML = Path(__file__).parent / "fixtures" / "scenes" / "thinlens_textured.xml"
+W, H, S = 32, 24, 4
+
+
+@pytest.fixture(scope="module")
+def mi():
+    from mcdenoise.errors import SceneError
+    from mcdenoise.render._mitsuba import mitsuba
+
+    try:
+        return mitsuba()
+    except SceneError as e:  # pragma: no cover - depends on the machine
+        pytest.skip(f"Mitsuba LLVM backend unavailable: {e}")
+
+
+@pytest.fixture(scope="module")
+def cornell(mi):
+    from mcdenoise.render import load_scene
+
+    return load_scene("cornell-box", width=W, height=H)
+
+
+@pytest.fixture(scope="module")
+def settings():
+    from mcdenoise.render import RenderSettings
+
+    return RenderSettings(spp=S, ref_spp=16, width=W, height=H, seed=3)
+
+
+@pytest.fixture(scope="module")
+def samples(cornell, settings):
+    from mcdenoise.render import render_samples
+
+    return render_samples(cornell, settings, record_position=True)
+
+
+@pytest.fixture(scope="module")
+def xml_scene(mi):
+    from mcdenoise.render import load_scene
+
+    return load_scene(FIXTURE_XML, width=W, height=H)
+
+
+def _mi_render(mi, scene, spp: int, seed: int, max_depth: int = 6) -> np.ndarray:
+    integ = mi.load_dict({"type": "mcdenoise_path", "max_depth": max_depth})
+    return np.array(mi.render(scene, integrator=integ, spp=spp, seed=seed)).transpose(2, 0, 1)
+
+
+# ----------------------------------------------------------------------------- exactness
+
+
+def test_pixel_means_equal_mi_render(mi, cornell, samples, settings):
+    arrays, _ = samples
+    ours = arrays["radiance"].mean(axis=0)
+    ref = _mi_render(mi, cornell, settings.spp, settings.seed)
+    assert ours.shape == ref.shape == (3, H, W)
+    assert ref.mean() > 0.01  # the scene is lit
+    # Same paths, same random numbers: equal up to the order of the float32 pixel sums.
+    np.testing.assert_allclose(ours, ref, rtol=2e-6, atol=1e-7)
+    assert np.mean(ours == ref) > 0.95
+
+
+def test_pixel_means_equal_mi_render_thinlens_textures(mi, xml_scene):
+    from mcdenoise.render import RenderSettings, render_samples
+
+    st = RenderSettings(spp=S, ref_spp=0, width=W, height=H, seed=11)
+    arrays, feats = render_samples(xml_scene, st)
+    ours = arrays["radiance"].mean(axis=0)
+    ref = _mi_render(mi, xml_scene, S, 11)
+    np.testing.assert_allclose(ours, ref, rtol=2e-6, atol=1e-7)
+    assert feats["aperture_radius"] == pytest.approx(0.15)
+    assert feats["focus_distance"] == pytest.approx(5.0)
+    assert feats["fov"] == pytest.approx(40.0)
+    lens = arrays["lens"]
+    r = np.sqrt((lens**2).sum(axis=1))
+    assert r.max() <= 1.0 + 1e-6 and r.max() > 0.9  # fills the unit disk
+    assert abs(float(lens.mean())) < 0.05
+    # The lens record is the aperture sample mi.render used: a different lens sample would
+    # give a different image, so exactness above also pins the lens records.
+
+
+def test_diffuse_plus_specular_is_total(samples):
+    arrays, _ = samples
+    tot = arrays["diffuse"] + arrays["specular"]
+    np.testing.assert_allclose(tot, arrays["radiance"], rtol=1e-5, atol=1e-6)
+    assert arrays["diffuse"].min() >= 0 and arrays["specular"].min() >= -1e-6
+    # Both parts carry energy in a scene with diffuse walls and a glossy/glass sphere.
+    assert arrays["diffuse"].mean() > 0.01 and arrays["specular"].mean() > 0.005
+
+
+def test_feature_ranges(samples):
+    arrays, _ = samples
+    hit = arrays["depth"][:, 0] > 0
+    assert 0.5 < hit.mean() <= 1.0
+    n = np.sqrt((arrays["normal"] ** 2).sum(axis=1))
+    np.testing.assert_allclose(n[hit], 1.0, atol=1e-4)
+    assert np.all(n[~hit] == 0)
+    for name in ("albedo", "albedo_diffuse", "roughness", "visibility", "lobes", "subpixel"):
+        v = arrays[name]
+        assert v.min() >= 0.0 and v.max() <= 1.0, name
+    assert arrays["subpixel"].max() < 1.0 and 0.4 < arrays["subpixel"].mean() < 0.6
+    for name in ("visibility", "lobes"):
+        assert set(np.unique(arrays[name])) <= {0.0, 1.0}, name
+    pl = arrays["path_length"]
+    assert np.all(pl == np.round(pl)) and pl.max() <= 6
+    # A path that hit something has at least one lobe at vertex 1 unless it hit only the light.
+    lobes1 = arrays["lobes"][:, 0:5].sum(axis=1)
+    assert np.all(lobes1[~hit] == 0)
+    assert (lobes1[hit] > 0).mean() > 0.9
+    # Roughness: diffuse walls are 1, the rough gold sphere 0.15, glass 0.
+    vals = np.unique(arrays["roughness"][:, 0][hit]).astype(np.float64)
+    for want in (1.0, 0.15, 0.0):
+        assert np.abs(vals - want).min() < 1e-6, (want, vals)
+    # depth_diffuse >= depth (the first diffuse hit is at or after the first hit).
+    dd, d = arrays["depth_diffuse"], arrays["depth"]
+    found = dd > 0
+    assert np.all(dd[found] >= d[found] - 1e-4)
+    # World position: on the Cornell box's surfaces (inside [-1, 1]^3 up to epsilon).
+    pos = arrays["position"][:, :, :, :][np.broadcast_to(hit[:, None], arrays["position"].shape)]
+    assert np.abs(pos).max() <= 1.0 + 1e-3
+    assert set(arrays) >= {"radiance", "lens", "time"}
+    assert np.all(arrays["time"] == 0) and np.all(arrays["lens"] == 0)  # static pinhole camera
+
+
+def test_determinism_per_seed(cornell, settings, samples):
+    from dataclasses import replace
+
+    from mcdenoise.render import render_samples
+
+    arrays, _ = samples
+    again, _ = render_samples(cornell, settings, record_position=True)
+    for k in arrays:
+        np.testing.assert_array_equal(again[k], arrays[k], err_msg=k)
+    other, _ = render_samples(cornell, replace(settings, seed=settings.seed + 1))
+    assert not np.array_equal(other["radiance"], arrays["radiance"])
+    assert not np.array_equal(other["subpixel"], arrays["subpixel"])
+
+
+def test_new_seed_does_not_recompile(mi, cornell, settings, samples):
+    import drjit as dr
+
+    from mcdenoise.render import render_samples
+
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        dr.kernel_history()  # clears
+        render_samples(cornell, settings, seed=987654)
+        hist = [k for k in dr.kernel_history() if k.get("type") == dr.KernelType.JIT]
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+    assert hist, "no JIT kernel launched"
+    assert all(k.get("cache_hit") for k in hist), [k.get("cache_hit") for k in hist]
+
+
+def test_chunked_render_is_consistent(cornell, settings, samples):
+    """Row bands (small chunk_samples) give the same statistics and valid records."""
+    from dataclasses import replace
+
+    from mcdenoise.render import render_samples
+
+    arrays, _ = samples
+    chunked, _ = render_samples(cornell, replace(settings, chunk_samples=W * S * 5))
+    assert chunked["radiance"].shape == arrays["radiance"].shape
+    # Different seeds per band: not identical, but the geometry records at the same sub-pixel
+    # positions are deterministic functions of the ray, so the depth maps agree on average.
+    assert not np.array_equal(chunked["radiance"], arrays["radiance"])
+    assert abs(chunked["depth"].mean() - arrays["depth"].mean()) < 0.05 * arrays["depth"].mean()
+
+
+# ----------------------------------------------------------------------------- references
+
+
+def test_reference_channels_and_independence(cornell, settings, samples):
+    from mcdenoise.render import render_reference
+
+    arrays, _ = samples
+    ref = render_reference(cornell, settings, spp=64)
+    assert set(ref) == {"radiance", "diffuse", "specular", "albedo"}
+    for v in ref.values():
+        assert v.shape[1:] == (H, W) and v.dtype == np.float32
+    np.testing.assert_allclose(ref["diffuse"] + ref["specular"], ref["radiance"], rtol=1e-4, atol=1e-5)
+    noisy = arrays["radiance"].mean(axis=0)
+    assert abs(ref["radiance"].mean() / noisy.mean() - 1) < 0.25  # 4 spp input: caustic fireflies
+    # Independent seeds: the reference is not the input re-averaged.
+    ref4 = render_reference(cornell, settings, spp=S)
+    assert not np.allclose(ref4["radiance"], noisy)
+    # Albedo is nearly noise-free (it varies only across edges inside a pixel).
+    assert np.abs(ref["albedo"] - arrays["albedo"].mean(axis=0)).mean() < 0.02
+
+
+@pytest.mark.slow
+def test_unbiased_against_mitsuba_path(mi, cornell, settings):
+    """Image mean within 0.5% of Mitsuba's own `path` integrator at high spp."""
+    from dataclasses import replace
+
+    from mcdenoise.render import render_reference
+
+    ref = render_reference(cornell, replace(settings, ref_spp=4096))
+    path = mi.load_dict({"type": "path", "max_depth": settings.max_depth})
+    img = np.mean([np.array(mi.render(cornell, integrator=path, spp=1024, seed=100 + k)) for k in range(4)], axis=0)
+    assert abs(ref["radiance"].mean() / img.mean() - 1) < 0.005
+
+
+# ----------------------------------------------------------------------------- motion
+
+
+def test_object_motion_time_slices_converge(mi):
+    from mcdenoise.render import RenderSettings, builtin_motion, load_scene, render_reference, render_samples
+
+    scene = load_scene("cornell-motion", width=16, height=16)
+    motion = builtin_motion("cornell-motion")
+    st = RenderSettings(spp=16, ref_spp=0, width=16, height=16, seed=5, **motion)
+    blurred, feats = render_samples(scene, st)
+    assert feats["shutter_close"] - feats["shutter_open"] == pytest.approx(1.0)
+    t = blurred["time"][:, 0]
+    # One stratified slice per sample index: every pixel of sample s shares time in [s/S, (s+1)/S).
+    for s in range(st.spp):
+        assert np.all(t[s] == t[s, 0, 0]) and s / st.spp <= t[s, 0, 0] < (s + 1) / st.spp
+    # First-hit albedo is nearly noise-free, so it shows the blur without radiance noise.
+    target = render_reference(scene, st, spp=128)["albedo"]  # 128 stratified slices
+    static, _ = render_samples(scene, RenderSettings(spp=16, ref_spp=0, width=16, height=16, seed=5))
+    err_blur = np.mean((blurred["albedo"].mean(0) - target) ** 2)
+    err_static = np.mean((static["albedo"].mean(0) - target) ** 2)
+    assert err_blur < 0.5 * err_static, (err_blur, err_static)
+    # More slices converge further.
+    st64 = RenderSettings(spp=64, ref_spp=0, width=16, height=16, seed=6, **motion)
+    blurred64, _ = render_samples(scene, st64)
+    err64 = np.mean((blurred64["albedo"].mean(0) - target) ** 2)
+    assert err64 < err_blur, (err64, err_blur)
+    # The scene is left as loaded.
+    after, _ = render_samples(scene, RenderSettings(spp=16, ref_spp=0, width=16, height=16, seed=5))
+    np.testing.assert_array_equal(after["radiance"], static["radiance"])
+
+
+def test_camera_motion_exact_per_ray(mi):
+    """Every sample sees the world from the camera at its own time: |position - origin(t)| = depth."""
+    from mcdenoise.render import RenderSettings, builtin_motion, load_scene, render_samples
+
+    scene = load_scene("cornell-camera-motion", width=16, height=16)
+    motion = builtin_motion("cornell-camera-motion")
+    st = RenderSettings(spp=4, ref_spp=0, width=16, height=16, seed=2, **motion)
+    arrays, _ = render_samples(scene, st, record_position=True)
+    t = arrays["time"][:, 0]
+    assert 0 <= t.min() and t.max() < 1 and t.std() > 0.2
+    start = np.array([[-1, 0, 0, 0], [0, 1, 0, 0], [0, 0, -1, 3.9], [0, 0, 0, 1]], float)
+    o0, o1 = start[:3, 3], np.asarray(motion["camera_to_world_end"])[:3, 3]
+    origin = o0[:, None, None, None] * (1 - t) + o1[:, None, None, None] * t  # (3, S, H, W)
+    pos = arrays["position"].transpose(1, 0, 2, 3)
+    depth = arrays["depth"][:, 0]
+    hit = depth > 0
+    dist = np.sqrt(((pos - origin) ** 2).sum(axis=0))
+    # Mitsuba starts camera rays on the near-clip plane (near_clip = 1e-3 along the axis).
+    gap = dist[hit] - depth[hit]
+    assert gap.min() > 0.9e-3 and gap.max() < 1.3e-3, (gap.min(), gap.max())
+    # Not a static camera: distances from the start origin disagree for late samples.
+    dist0 = np.sqrt(((pos - o0[:, None, None, None]) ** 2).sum(axis=0))
+    late = hit & (t > 0.5)
+    assert np.abs(dist0[late] - depth[late]).mean() > 0.01  # 10x the near-clip gap
+
+
+def test_camera_override(mi, cornell, settings, samples):
+    from dataclasses import replace
+
+    from mcdenoise.render import render_samples
+
+    arrays, _ = samples
+    moved = np.array([[-1, 0, 0, 0.2], [0, 1, 0, 0], [0, 0, -1, 3.9], [0, 0, 0, 1]], float)
+    other, _ = render_samples(cornell, replace(settings, ref_spp=0), camera_to_world=moved, record_position=True)
+    assert not np.allclose(other["depth"], arrays["depth"])
+    # The override is temporary: the scene renders as before afterwards.
+    again, _ = render_samples(cornell, settings, record_position=True)
+    np.testing.assert_array_equal(again["radiance"], arrays["radiance"])
+
+
+# ----------------------------------------------------------------------------- image folders, CLI, errors
+
+
+def test_render_image_folder(tmp_path, cornell, settings):
+    from mcdenoise.data.format import read_image
+    from mcdenoise.errors import SceneError
+    from mcdenoise.render import render_image
+
+    out = render_image(cornell, tmp_path / "img", settings, scene_name="cornell-box", record_position=True)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["img"]  # nothing left aside
+    img = read_image(out)
+    assert img.meta.spp == S and img.meta.reference_spp == 16 and img.meta.scene == "cornell-box"
+    assert img.meta.extra["max_depth"] == settings.max_depth
+    assert set(img.meta.scene_features) == {"fov", "aperture_radius", "focus_distance", "shutter_open", "shutter_close"}
+    noisy = img.read_noisy()
+    assert "radiance_variance" in noisy and "position" in noisy
+    ref = img.read_reference()
+    assert ref is not None and ref["radiance"].shape == (3, H, W)
+    smp = img.samples.read(["radiance", "lobes"])
+    assert smp["radiance"].shape == (S, 3, H, W) and smp["lobes"].shape == (S, 15, H, W)
+    np.testing.assert_allclose(noisy["radiance"], smp["radiance"].mean(0), rtol=1e-5, atol=1e-6)
+    with pytest.raises(SceneError, match="already exists"):
+        render_image(cornell, out, settings)
+
+
+def _bad_scene(tmp_path: Path, body: str) -> Path:
+    p = tmp_path / "bad.xml"
+    p.write_text(f'<scene version="3.0.0">{body}</scene>')
+    return p
+
+
+def test_errors_are_one_line(tmp_path, mi):
+    from mcdenoise.errors import SceneError
+    from mcdenoise.render import RenderSettings, load_scene
+
+    cases = [
+        (tmp_path / "missing.xml", "no such scene file"),
+        (_bad_scene(tmp_path, '<shape type="nosuchshape"/>'), "nosuchshape"),
+    ]
+    for path, needle in cases:
+        with pytest.raises(SceneError) as ei:
+            load_scene(path)
+        msg = str(ei.value)
+        assert "\n" not in msg and str(path) in msg and needle in msg, msg
+    nosensor = tmp_path / "nosensor.xml"
+    nosensor.write_text('<scene version="3.0.0"><shape type="sphere"/></scene>')
+    # Mitsuba adds a default sensor to scenes without one; either way the error/scene is usable.
+    try:
+        load_scene(nosensor)
+    except SceneError as e:
+        assert "sensor" in str(e)
+    with pytest.raises(SceneError, match="out of range"):
+        load_scene("cornell-box", width=0, height=10)
+    with pytest.raises(SceneError, match="spp"):
+        RenderSettings(spp=0).check()
+    with pytest.raises(SceneError, match="width"):
+        RenderSettings(width=100000).check()
+
+
+def _cli(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "mcdenoise.cli.main", "render", *args],
+                          capture_output=True, text=True, timeout=600)
+
+
+def test_cli_list_and_errors(tmp_path):
+    r = _cli("--list")
+    assert r.returncode == 0
+    names = [ln.split()[0] for ln in r.stdout.splitlines()]
+    assert {"cornell-box", "cornell-dof", "cornell-motion"} <= set(names)
+    r = _cli(str(tmp_path / "nope.xml"), "--out", str(tmp_path / "o"))
+    assert r.returncode == 1 and r.stderr.count("\n") == 1 and "nope.xml" in r.stderr
+    r = _cli("cornell-box", "--size", "0x5", "--out", str(tmp_path / "o"))
+    assert r.returncode == 1 and "--size" in r.stderr
+
+
+def test_cli_renders_xml_with_defines(tmp_path):
+    out = tmp_path / "xml"
+    r = _cli(str(FIXTURE_XML), "--spp", "2", "--ref-spp", "4", "--size", "16x12", "--seed", "4",
+             "--max-depth", "4", "-D", "radius=0.3", "--out", str(out))
+    assert r.returncode == 0, r.stderr
+    meta = json.loads((out / "meta.json").read_text())
+    assert meta["width"] == 16 and meta["height"] == 12 and meta["spp"] == 2 and meta["seed"] == 4
+    assert meta["extra"]["max_depth"] == 4 and meta["extra"]["defines"] == {"radius": "0.3"}
+    assert meta["scene_features"]["aperture_radius"] == pytest.approx(0.15)
+    assert (out / "reference.exr").exists() and (out / "noisy.exr").exists()
