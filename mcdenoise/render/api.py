@@ -547,8 +547,8 @@ def _trace_chunk(
         lens = mi.Vector2f(0.0)
         if prep.has_lens:
             lens = mi.warp.square_to_uniform_disk_concentric(aperture)
-        values["lens"] = lens + 0.0 * sub.x
-        values["time"] = t_norm + 0.0 * sub.x
+        values["lens"] = lens
+        values["time"] = t_norm
 
     # Flatten every value into a list of Float components.
     comps: dict[str, list[Any]] = {}
@@ -561,17 +561,24 @@ def _trace_chunk(
             comps[k] = [v[i] for i in range(len(v))]
     flat = [c for cs in comps.values() for c in cs]
     dr.eval(*flat)
+
+    def host(c: Any) -> np.ndarray:
+        a = np.asarray(c, dtype=np.float32).reshape(-1)
+        # Constant outputs (e.g. no lens) come back as one literal: broadcast them.
+        return np.full(n, a[0], dtype=np.float32) if a.size == 1 and n != 1 else a
+
     res: dict[str, np.ndarray] = {}
     for k, cs in comps.items():
         if reduce:
             # Summed here rather than with dr.block_sum, which is ~6x slower than the trace on LLVM.
-            arr = np.stack([np.asarray(c).reshape(h * W, spp).sum(axis=1, dtype=np.float64) for c in cs], 0)
-            arr = arr.reshape(len(cs), h, W)
+            arr = np.stack([host(c).reshape(h * W, spp).sum(axis=1, dtype=np.float64) for c in cs], 0)
+            res[k] = arr.reshape(len(cs), h, W)
         else:
-            arr = np.stack([np.asarray(c, dtype=np.float32) for c in cs], 0)  # (C, h*W*spp)
-            arr = arr.reshape(len(cs), h, W, spp).transpose(3, 0, 1, 2)
-            arr = np.ascontiguousarray(arr)
-        res[k] = arr
+            arr = np.empty((spp, len(cs), h, W), dtype=np.float32)
+            for i, c in enumerate(cs):
+                # Lanes are ordered (row, column, sample).
+                arr[:, i] = host(c).reshape(h, W, spp).transpose(2, 0, 1)
+            res[k] = arr
     return res
 
 

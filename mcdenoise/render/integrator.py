@@ -133,7 +133,6 @@ def register() -> None:
             albedo = mi.Color3f(0.0)
             normal = mi.Vector3f(0.0)
             hit_t = mi.Float(0.0)
-            position = mi.Point3f(0.0)
             albedo_d = mi.Color3f(0.0)
             normal_d = mi.Vector3f(0.0)
             depth_d = mi.Float(0.0)
@@ -141,9 +140,9 @@ def register() -> None:
             visibility = mi.Float(0.0)
             roughness = mi.Float(0.0)
             dist = mi.Float(0.0)
-            lobe1 = mi.UInt32(0)
-            lobe2 = mi.UInt32(0)
-            lobe3 = mi.UInt32(0)
+            # Sampled lobe flags of vertices 1..3, 8 bits each (BSDFFlags fit in the low byte
+            # for the five flags we keep): one loop variable instead of three.
+            lobes_packed = mi.UInt32(0)
 
             while dr.hint(active, max_iterations=self.max_depth, label="mcdenoise_path"):
                 si = scene.ray_intersect(ray, ray_flags=mi.RayFlags.All, coherent=(depth == 0))
@@ -184,31 +183,39 @@ def register() -> None:
                     L_diff[decided & is_diff] += Lr_dir
 
                     hit_first = first & si.is_valid()
+                    # One diffuse-reflectance evaluation per vertex serves both albedo records.
+                    refl_mask = hit_first
+                    if dr.hint(full, mode="scalar"):
+                        new_d = active_next & ~found_d & lobe_diffuse
+                        refl_mask = hit_first | new_d
+                    refl = dr.clip(bsdf.eval_diffuse_reflectance(si, refl_mask), 0.0, 1.0)
                     bsdf_is_diffuse = mi.has_flag(bsdf.flags(), mi.BSDFFlags.Diffuse)
-                    refl = bsdf.eval_diffuse_reflectance(si, hit_first)
                     # Purely specular/glossy materials: their tint (sampled weight, clamped to [0,1]).
-                    refl = dr.select(bsdf_is_diffuse, refl, dr.clip(bsdf_weight, 0.0, 1.0))
-                    albedo[hit_first] = dr.clip(refl, 0.0, 1.0)
+                    albedo[hit_first] = dr.select(bsdf_is_diffuse, refl, dr.clip(bsdf_weight, 0.0, 1.0))
 
                 if dr.hint(full, mode="scalar"):
                     hit_first = first & si.is_valid()
                     normal[hit_first] = si.sh_frame.n
                     hit_t[hit_first] = si.t
-                    position[hit_first] = si.p
                     dist[si.is_valid()] += si.t
                     if dr.hint(self.roughness_table is not None, mode="scalar"):
                         bid = dr.reinterpret_array(mi.UInt32, bsdf)
                         rough = dr.gather(mi.Float, self.roughness_table, bid, hit_first)
                         roughness[hit_first] = rough
-                    new_d = active_next & ~found_d & lobe_diffuse
-                    albedo_d[new_d] = dr.clip(bsdf.eval_diffuse_reflectance(si, new_d), 0.0, 1.0)
+                    albedo_d[new_d] = refl
                     normal_d[new_d] = si.sh_frame.n
                     depth_d[new_d] = dist
                     visibility[new_d] = dr.select(active_em & (dr.max(em_weight) > 0.0), 1.0, 0.0)
                     found_d |= new_d
-                    lobe1[active_next & (depth == 0)] = lobe
-                    lobe2[active_next & (depth == 1)] = lobe
-                    lobe3[active_next & (depth == 2)] = lobe
+                    small = (
+                        dr.select(mi.has_flag(lobe, mi.BSDFFlags.Reflection), 1, 0)
+                        | dr.select(mi.has_flag(lobe, mi.BSDFFlags.Transmission), 2, 0)
+                        | dr.select(mi.has_flag(lobe, mi.BSDFFlags.Diffuse), 4, 0)
+                        | dr.select(mi.has_flag(lobe, mi.BSDFFlags.Glossy), 8, 0)
+                        | dr.select(mi.has_flag(lobe, mi.BSDFFlags.Delta), 16, 0)
+                    )
+                    at_v = active_next & (depth < LOBE_VERTICES)
+                    lobes_packed[at_v] = lobes_packed | (mi.UInt32(small) << (depth * 8))
 
                 L = L + Le + Lr_dir
                 ray = si.spawn_ray(si.to_world(bsdf_sample.wo))
@@ -240,21 +247,17 @@ def register() -> None:
             if dr.hint(full, mode="scalar"):
                 out["normal"] = normal
                 out["depth"] = hit_t
-                out["position"] = position
+                # From the camera ray rather than a loop variable: fewer live values in the loop.
+                out["position"] = dr.select(hit_t > 0.0, ray_.o + ray_.d * hit_t, 0.0)
                 out["albedo_diffuse"] = albedo_d
                 out["normal_diffuse"] = normal_d
                 out["depth_diffuse"] = depth_d
                 out["roughness"] = roughness
                 out["visibility"] = visibility
-                flags = (
-                    mi.BSDFFlags.Reflection,
-                    mi.BSDFFlags.Transmission,
-                    mi.BSDFFlags.Diffuse,
-                    mi.BSDFFlags.Glossy,
-                    mi.BSDFFlags.Delta,
-                )
                 out["lobes"] = [
-                    dr.select(mi.has_flag(lv, f), 1.0, 0.0) for lv in (lobe1, lobe2, lobe3) for f in flags
+                    dr.select((lobes_packed & (1 << (8 * v + j))) != 0, 1.0, 0.0)
+                    for v in range(LOBE_VERTICES)
+                    for j in range(5)
                 ]
                 out["path_length"] = mi.Float(depth)
             return out

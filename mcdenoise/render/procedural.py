@@ -478,14 +478,15 @@ def _roll_up(rng: np.random.Generator) -> np.ndarray:
 
 def _poisson_disc(rng: np.random.Generator, lo: np.ndarray, hi: np.ndarray, radius: float, limit: int) -> np.ndarray:
     """Dart-throwing Poisson-disc samples in the 2D box [lo, hi] (at most ``limit`` points)."""
-    pts: list[np.ndarray] = []
-    for _ in range(limit * 30):
-        p = rng.uniform(lo, hi)
-        if all(np.sum((p - q) ** 2) >= radius * radius for q in pts):
-            pts.append(p)
-            if len(pts) >= limit:
+    pts = np.empty((limit, 2))
+    n = 0
+    for p in rng.uniform(lo, hi, size=(limit * 30, 2)):
+        if n == 0 or ((pts[:n] - p) ** 2).sum(axis=1).min() >= radius * radius:
+            pts[n] = p
+            n += 1
+            if n >= limit:
                 break
-    return np.array(pts).reshape(-1, 2)
+    return pts[:n]
 
 
 def _outdoor(b: _Builder, n_objects: int, width: int, height: int) -> _Camera:
