@@ -238,7 +238,9 @@ def per_pixel_exp(logits: torch.Tensor) -> torch.Tensor:
     return torch.exp(logits - m)
 
 
-def per_destination_exp(logits: torch.Tensor, kernel_size: int) -> torch.Tensor:
+def per_destination_exp(
+    logits: torch.Tensor, kernel_size: int, source_max: torch.Tensor | None = None
+) -> torch.Tensor:
     """Exponentiate splat-kernel logits ``(B, S, K*K, H, W)`` so that normalisation stays exact.
 
     A splat output pixel ``u`` is normalised by the sum of all weights that land on ``u``, coming
@@ -250,6 +252,10 @@ def per_destination_exp(logits: torch.Tensor, kernel_size: int) -> torch.Tensor:
     sample at ``x`` lands on ``u = x + (i - r, j - r)`` (flat index ``i*K + j``, ``r = K // 2``),
     the splat convention of :mod:`mcdenoise.ops.splat`. The shift is constant per destination and
     so cancels exactly in the per-pixel normalisation.
+
+    ``source_max`` ``(B, 1, H, W)``, if given, replaces the per-pixel max over samples and taps of
+    ``logits``: pass the max over *all* samples when ``logits`` holds only a chunk of them, so every
+    chunk gets the same shift.
     """
     b, s, kk, h, w = logits.shape
     k = kernel_size
@@ -257,7 +263,8 @@ def per_destination_exp(logits: torch.Tensor, kernel_size: int) -> torch.Tensor:
         raise ValueError(f"expected {k * k} kernel taps, got {kk}")
     r = k // 2
     with torch.no_grad():
-        m = logits.amax(dim=(1, 2)).unsqueeze(1)  # (B, 1, H, W): max logit of each source pixel
+        # (B, 1, H, W): max logit of each source pixel
+        m = logits.amax(dim=(1, 2)).unsqueeze(1) if source_max is None else source_max.to(logits.dtype)
         c = F.max_pool2d(m, k, stride=1, padding=r)  # (B, 1, H, W): max over sources near u
         # Destination of tap (i, j) at x is x + (i - r, j - r): unfold gathers exactly that.
         # Replicate padding: taps landing outside the image are dropped by the splat anyway.

@@ -81,6 +81,10 @@ class SBMCConfig:
     """Side of the splat/gather kernel (Sec. 3.1: 21)."""
     eps: float = 1e-8
     """Added to the per-pixel weight sum before dividing (pixels no kernel reaches become 0)."""
+    kernel_budget_mb: int = 1024
+    """Splat variants: when all samples' kernels would exceed this many MB, they are generated and
+    splatted a chunk of samples at a time (two passes: per-pixel max, then splat). Same result;
+    bounds the kernel memory, not that of the embeddings."""
 
 
 def _paper(**kw: object) -> SBMCConfig:
@@ -165,14 +169,36 @@ class SBMC(Denoiser):
         g = signed_log1p(scene.to(f.dtype))[:, None, :, None, None].expand(b, s, -1, h, w)
         return torch.cat([f, g], dim=2), radiance
 
-    def kernel_logits(self, f: torch.Tensor) -> torch.Tensor:
-        """Algorithm 1 up to the kernel: ``f`` (B, S, F, H, W) -> logits (B, S, K*K, H, W)."""
+    def embed(self, f: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Algorithm 1's loop: ``f`` (B, S, F, H, W) -> (E_n (B, S, D, H, W), C_n (B, D, H, W))."""
         e = self.embed0(f)
-        ctx = None
+        ctx = e.mean(dim=1)
         for unet, fc in zip(self.unets, self.embeds):
             ctx = unet(e.mean(dim=1))  # mean over samples: permutation invariant, any S
             e = fc(e, ctx)
+        return e, ctx
+
+    def kernel_logits(self, f: torch.Tensor) -> torch.Tensor:
+        """Algorithm 1 up to the kernel: ``f`` (B, S, F, H, W) -> logits (B, S, K*K, H, W)."""
+        e, ctx = self.embed(f)
         return self.kernel(e, ctx)
+
+    def _splat_chunked(self, e: torch.Tensor, ctx: torch.Tensor, radiance: torch.Tensor, chunk: int) -> torch.Tensor:
+        """Eq. 1 with kernels generated ``chunk`` samples at a time (same result as all at once)."""
+        from mcdenoise.ops.splat import SplatAccumulator
+
+        k = self.config.kernel_size
+        s = e.shape[1]
+        src_max = None
+        with torch.no_grad():  # pass 1: per-pixel max over all samples' logits (a constant shift)
+            for s0 in range(0, s, chunk):
+                m = self.kernel(e[:, s0 : s0 + chunk], ctx).amax(dim=(1, 2)).unsqueeze(1)
+                src_max = m if src_max is None else torch.maximum(src_max, m)
+        acc = SplatAccumulator()
+        for s0 in range(0, s, chunk):
+            logits = self.kernel(e[:, s0 : s0 + chunk], ctx)
+            acc.add(radiance[:, s0 : s0 + chunk], per_destination_exp(logits, k, src_max))
+        return acc.normalized(self.config.eps)
 
     def forward(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
         """Denoise: per-sample buffers -> ``(B, 3, H, W)`` linear radiance."""
@@ -180,9 +206,15 @@ class SBMC(Denoiser):
 
         cfg = self.config
         f, radiance = self.features(batch)
-        logits = self.kernel_logits(f)
-        radiance = radiance.to(logits.dtype)
+        e, ctx = self.embed(f)
+        radiance = radiance.to(e.dtype)
         k = cfg.kernel_size
+        b, s, _, h, w = e.shape
+        per_sample_bytes = b * k * k * h * w * e.element_size()
+        chunk = max(1, (cfg.kernel_budget_mb << 20) // per_sample_bytes)
+        if cfg.splat and chunk < s:
+            return self._splat_chunked(e, ctx, radiance, chunk)
+        logits = self.kernel(e, ctx)
         if cfg.splat:
             from mcdenoise.ops.splat import splat
 
