@@ -84,14 +84,19 @@ def box_sum(x: Tensor, size: int) -> Tensor:
     running sums stay short (one row or column), which keeps cancellation error small.
     """
     r = size // 2
+    if r == 0:
+        return x.clone()
     for axis in (-1, -2):
         n = x.shape[axis]
-        c = torch.cumsum(x, dim=axis)
-        c = torch.cat([torch.zeros_like(c.narrow(axis, 0, 1)), c], dim=axis)  # c[t] = sum of x[:t]
-        idx = torch.arange(n, device=x.device)
-        hi = (idx + r + 1).clamp(max=n)
-        lo = (idx - r).clamp(min=0)
-        x = c.index_select(axis, hi) - c.index_select(axis, lo)
+        c = torch.cumsum(x, dim=axis)  # c[t] = sum of x[:t+1]
+        # Window [t - r, t + r] clipped to [0, n): c[min(t + r, n - 1)] - c[t - r - 1] (0 below 0).
+        # Extending c with r copies of its last entry and r + 1 zeros in front turns both clamps
+        # into two plain slices of one tensor.
+        lead = list(c.shape)
+        lead[axis] = r + 1
+        tail = c.narrow(axis, n - 1, 1).expand(*[r if d == (axis % c.dim()) else -1 for d in range(c.dim())])
+        ext = torch.cat([c.new_zeros(lead), c, tail], dim=axis)  # ext[t + r + 1] = c[t]
+        x = ext.narrow(axis, 2 * r + 1, n) - ext.narrow(axis, 0, n)
     return x
 
 
@@ -111,9 +116,9 @@ def importance_filter_fast(image: Tensor, importance: Tensor, size: int) -> Tens
     # Any per-image shift cancels in the ratio, so the max carries no gradient: detach is exact.
     m = imp.amax(dim=(1, 2, 3), keepdim=True).detach()
     e = torch.exp((imp - m).clamp(min=_MIN_LOG))  # (B, 1, H, W)
-    num = box_sum(e * image.to(acc), size)
-    den = box_sum(e, size)
-    return (num / den).to(image.dtype)
+    c = image.shape[1]
+    sums = box_sum(torch.cat([e * image.to(acc), e], dim=1), size)  # numerator and denominator in one pass
+    return (sums[:, :c] / sums[:, c:]).to(image.dtype)
 
 
 def importance_filter(image: Tensor, importance: Tensor, size: int, *, impl: str = "auto") -> Tensor:
