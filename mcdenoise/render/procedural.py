@@ -34,6 +34,7 @@ Motion is not part of the Mitsuba dict (Mitsuba 3 has no moving shapes): it is i
 from __future__ import annotations
 
 import copy
+import gc
 import hashlib
 import math
 from dataclasses import dataclass, field
@@ -426,7 +427,8 @@ def _indoor(b: _Builder, n_objects: int, width: int, height: int) -> _Camera:
             tops.append((np.array([fx, bh, fz]), sx * 0.7, sz * 0.7))
 
     # Random objects: on the floor, on furniture, or floating.
-    for i in range(max(0, n_objects - len(b.objects))):
+    # Furniture pieces count as objects, but at least a third of the count are random objects.
+    for i in range(max(n_objects // 3, n_objects - len(b.objects))):
         size = _loguniform(rng, 0.08, 0.4)
         for _ in range(20):
             r = rng.random()
@@ -549,7 +551,9 @@ class ProceduralScene:
 
     Attributes:
         scene: Mitsuba 3 scene dict (for ``mi.load_dict``); procedural meshes are ``mi.Mesh``
-            objects inside it, so load it once per process (meshes are shared, not copied).
+            objects inside it, shared (not copied) by every scene loaded from it. Drop it when
+            done: Dr.Jit compiles virtual calls to every live BSDF in the process, so drawn scenes
+            kept alive make every later kernel compile slower.
         seed: the seed given to :func:`generate`.
         drawn_seed: the seed that produced the accepted scene (differs after rejections).
         attempts: how many drawings were rejected before this one.
@@ -584,14 +588,19 @@ class ProceduralScene:
     info: dict
 
 
-def _draw(seed: int, kind: str | None, width: int, height: int) -> ProceduralScene:
+def _draw(
+    seed: int, kind: str | None, width: int, height: int, objects: tuple[int, int] = (MIN_OBJECTS, MAX_OBJECTS)
+) -> ProceduralScene:
     """Draw one scene from ``seed`` without any check."""
     rng = np.random.default_rng(seed)
     kind = kind or str(rng.choice(KINDS))
     if kind not in KINDS:
         raise SceneError(f"unknown procedural scene kind {kind!r}; kinds: {', '.join(KINDS)}")
+    lo, hi = objects
+    if not 1 <= lo <= hi <= 1000:
+        raise SceneError(f"procedural scene: object count range {lo}-{hi} must satisfy 1 <= min <= max <= 1000")
     b = _Builder(rng)
-    n_objects = int(rng.integers(MIN_OBJECTS, MAX_OBJECTS + 1))
+    n_objects = int(rng.integers(lo, hi + 1))
     dof = bool(rng.random() < 0.5)
     motion = bool(rng.random() < 0.5)
     cam = (_indoor if kind == "indoor" else _outdoor)(b, n_objects, width, height)
@@ -745,16 +754,20 @@ def generate(
     height: int = 128,
     check: bool = True,
     max_attempts: int = MAX_ATTEMPTS,
+    objects: tuple[int, int] = (MIN_OBJECTS, MAX_OBJECTS),
 ) -> ProceduralScene:
     """Draw a scene from ``seed``; with ``check``, re-draw rejected ones from derived seeds.
 
-    ``width``/``height`` only set the film in the dict (the renderer may override them). Raises
-    SceneError when ``max_attempts`` drawings in a row are rejected.
+    ``width``/``height`` only set the film in the dict (the renderer may override them).
+    ``objects`` is the (min, max) number of objects: indoor scenes count their furniture pieces
+    in it when there is room. JIT compilation time grows with it: every object's material
+    is compiled into the kernel separately. Raises SceneError when ``max_attempts`` drawings in
+    a row are rejected.
     """
     reasons: list[str] = []
     for attempt in range(max_attempts):
         drawn = seed if attempt == 0 else derive_seed(seed, attempt)
-        ps = _draw(drawn, kind, width, height)
+        ps = _draw(drawn, kind, width, height, objects)
         ps.seed, ps.drawn_seed, ps.attempts = seed, drawn, attempt
         if not check:
             return ps
@@ -774,12 +787,15 @@ def generate(
             )
             return ps
         reasons.append(f"seed {drawn}: {problem}")
+        # Free the rejected scene now: Dr.Jit compiles calls to every live BSDF of the process.
+        del ps
+        gc.collect()
     raise SceneError(f"procedural scene seed {seed}: {max_attempts} drawings rejected ({'; '.join(reasons[-3:])})")
 
 
-def generate_scene(seed: int, *, kind: str | None = None) -> dict:
+def generate_scene(seed: int, *, kind: str | None = None, objects: tuple[int, int] = (MIN_OBJECTS, MAX_OBJECTS)) -> dict:
     """Mitsuba scene dict of the checked scene drawn from ``seed`` (see :func:`generate`)."""
-    return generate(seed, kind=kind).scene
+    return generate(seed, kind=kind, objects=objects).scene
 
 
 def scene_digest(node: Any) -> str:

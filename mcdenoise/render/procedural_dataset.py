@@ -21,6 +21,7 @@ it renders the missing images. Finished folders are never rendered again.
 
 from __future__ import annotations
 
+import gc
 import json
 import re
 import shutil
@@ -66,6 +67,7 @@ class DatasetConfig:
         max_depth: path depth (Mitsuba's convention), input and reference alike.
         kind: ``"indoor"``, ``"outdoor"`` or None (both, half each on average).
         fractions: train/val/test fractions of the scene-level split.
+        objects: (min, max) objects per scene (fewer compile faster; SBMC used up to 50).
     """
 
     count: int
@@ -78,6 +80,7 @@ class DatasetConfig:
     max_depth: int = 6
     kind: str | None = None
     fractions: tuple[float, float, float] = (0.8, 0.1, 0.1)
+    objects: tuple[int, int] = (10, 50)
 
     def check(self) -> None:
         from mcdenoise.render.procedural import KINDS
@@ -89,6 +92,9 @@ class DatasetConfig:
                 raise SceneError(f"dataset: {name}={v!r} is out of range [{lo}, {hi}]")
         if self.kind is not None and self.kind not in KINDS:
             raise SceneError(f"dataset: kind {self.kind!r} is not one of {', '.join(KINDS)}")
+        lo, hi = self.objects
+        if not 1 <= lo <= hi <= 1000:
+            raise SceneError(f"dataset: objects {lo}-{hi} must satisfy 1 <= min <= max <= 1000")
         fr = tuple(float(f) for f in self.fractions)
         if len(fr) != 3 or min(fr) < 0 or sum(fr) <= 0:
             raise SceneError(f"dataset: split fractions {self.fractions} must be three non-negative numbers")
@@ -96,6 +102,7 @@ class DatasetConfig:
     def to_json(self) -> dict[str, Any]:
         d = asdict(self)
         d["fractions"] = list(self.fractions)
+        d["objects"] = list(self.objects)
         return {"format": "mcdenoise-procedural-dataset", "version": 1, **d}
 
     @classmethod
@@ -108,6 +115,7 @@ class DatasetConfig:
         except TypeError as e:
             raise FormatError(where, f"bad config ({e})") from None
         cfg.fractions = tuple(cfg.fractions)  # type: ignore[assignment]
+        cfg.objects = tuple(cfg.objects)  # type: ignore[assignment]
         return cfg
 
 
@@ -250,7 +258,7 @@ def render_procedural_image(
     from mcdenoise.render.sequence import camera_path, motion_vectors, primary_hits
 
     scene_seed = derive_seed(cfg.seed, index)
-    ps = generate(scene_seed, kind=cfg.kind, width=cfg.width, height=cfg.height)
+    ps = generate(scene_seed, kind=cfg.kind, width=cfg.width, height=cfg.height, objects=tuple(cfg.objects))
     scene = load_scene(ps.scene, width=cfg.width, height=cfg.height)
     name = scene_name(index)
     meta: dict[str, Any] = {
@@ -344,6 +352,9 @@ def render_dataset(
     try:
         for i, rels in todo.items():
             render_procedural_image(cfg, root, i, rels, on_image=finished)
+            # The scene's Mitsuba objects must die before the next scene compiles: Dr.Jit's
+            # virtual calls cover every live BSDF of the process.
+            gc.collect()
     finally:
         bar.close()
     manifest = rebuild_manifest(root)
