@@ -14,7 +14,8 @@ neither black nor blown out).
 
 What varies, per scene:
 
-* kind: ``indoor`` (a box room, 1-5 pieces of furniture-like boxes, 1-5 area/point/spot lights)
+* kind: ``indoor`` (a box room, 1-5 pieces of furniture-like boxes, 1-5 area (ceiling disks,
+  glowing spheres), point and spot lights)
   or ``outdoor`` (a flat or hilly ground, lit by a procedural HDR environment map or Mitsuba's
   ``sunsky``);
 * 10-50 random objects: built-in ``sphere``/``cube``/``cylinder`` and procedural meshes
@@ -96,6 +97,10 @@ MIN_OBJECTS, MAX_OBJECTS = 10, 50
 MAX_ATTEMPTS = 12
 #: Preview size (pixels on the long side) and samples per pixel of the rejection check.
 PREVIEW_SIZE, PREVIEW_SPP = 32, 8
+#: Gap (metres) between the floor and the boxes standing on it. Coplanar faces make ray hits ties
+#: that the parallel BVH build breaks differently from run to run: pixels would not be
+#: reproducible.
+LIFT = 1e-3
 
 
 # --------------------------------------------------------------------------------------------
@@ -415,13 +420,13 @@ def _indoor(b: _Builder, n_objects: int, width: int, height: int) -> _Camera:
             _add_object(b, f"furniture_{k}", "cube", top, mat, max(sx, sz))
             k += 1
             for lx, lz in ((-1, -1), (-1, 1), (1, -1), (1, 1)):
-                leg_c = _translate([fx, 0, fz]) @ yaw @ _translate([lx * (sx - 0.05), th / 2, lz * (sz - 0.05)])
+                leg_c = _translate([fx, LIFT, fz]) @ yaw @ _translate([lx * (sx - 0.05), th / 2, lz * (sz - 0.05)])
                 _add_object(b, f"furniture_{k}", "cube", leg_c @ _scale([0.03, th / 2, 0.03]), mat, th / 2)
                 k += 1
             tops.append((np.array([fx, th + 0.03, fz]), sx * 0.8, sz * 0.8))
         else:  # box: cabinet, bed, shelf
             bh = rng.uniform(0.3, min(2.0, h - 0.5))
-            m = _translate([fx, bh / 2, fz]) @ yaw @ _scale([sx, bh / 2, sz])
+            m = _translate([fx, bh / 2 + LIFT, fz]) @ yaw @ _scale([sx, bh / 2, sz])
             _add_object(b, f"furniture_{k}", "cube", m, mat, max(sx, sz, bh / 2))
             k += 1
             tops.append((np.array([fx, bh, fz]), sx * 0.7, sz * 0.7))
@@ -450,9 +455,12 @@ def _indoor(b: _Builder, n_objects: int, width: int, height: int) -> _Camera:
         kind = str(rng.choice(["area_panel", "area_sphere", "point", "spot"], p=[0.4, 0.15, 0.25, 0.2]))
         lp = np.array([rng.uniform(-hx + 0.5, hx - 0.5), rng.uniform(h * 0.6, h - 0.15), rng.uniform(-hz + 0.5, hz - 0.5)])
         if kind == "area_panel":
-            s = rng.uniform(0.2, 0.8, 2)
-            m = _rect([lp[0], h - 0.01, lp[2]], _rotate([1, 0, 0], np.pi / 2), s[0], s[1])
-            b.add(lid, {"type": "rectangle", "id": lid, "to_world": _xform(m), "emitter": {"type": "area", "radiance": {"type": "rgb", "value": (col * 5.0).tolist()}}})
+            # Round ceiling lamps: disks, not rectangles. Mitsuba 3.9 lists the emitters of
+            # mesh shapes (rectangle, cube) in an order that changes from load to load, which
+            # changes which light a random number picks: pixels would not be reproducible.
+            r = rng.uniform(0.15, 0.6)
+            m = _translate([lp[0], h - 0.01, lp[2]]) @ _rotate([1, 0, 0], np.pi / 2) @ _scale([r, r, 1.0])
+            b.add(lid, {"type": "disk", "id": lid, "to_world": _xform(m), "emitter": {"type": "area", "radiance": {"type": "rgb", "value": (col * 5.0).tolist()}}})
         elif kind == "area_sphere":
             r = rng.uniform(0.05, 0.2)
             b.add(lid, {"type": "sphere", "id": lid, "center": lp.tolist(), "radius": float(r), "emitter": {"type": "area", "radiance": {"type": "rgb", "value": (col * 5.0 / (r * r)).tolist()}}})

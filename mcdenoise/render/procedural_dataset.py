@@ -296,9 +296,12 @@ def render_procedural_image(
             spp=cfg.spp, ref_spp=cfg.ref_spp, width=cfg.width, height=cfg.height,
             seed=derive_seed(scene_seed, f, 1), max_depth=cfg.max_depth,
         )
-        pos, hit, dirs = primary_hits(scene, path[f], ps.fov, cfg.width, cfg.height)
         prev = path[f - 1] if f > 0 else path[f]
-        motion = motion_vectors(pos, hit, dirs, prev, ps.fov, cfg.width, cfg.height)
+        if f == 0:  # no previous frame: no motion (exactly)
+            motion = np.zeros((2, cfg.height, cfg.width), np.float32)
+        else:
+            pos, hit, dirs = primary_hits(scene, path[f], ps.fov, cfg.width, cfg.height)
+            motion = motion_vectors(pos, hit, dirs, prev, ps.fov, cfg.width, cfg.height)
         final = root / rel
         staging = final.with_name(f".{final.name}.partial")
         frame_meta = {**meta, "frame": f, "frames": cfg.frames, "camera_to_world_prev": np.asarray(prev).tolist()}

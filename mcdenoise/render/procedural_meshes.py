@@ -25,6 +25,7 @@ __all__ = [
     "MESH_BUILDERS",
     "to_mitsuba_mesh",
     "mitsuba_module",
+    "vertex_normals",
 ]
 
 MeshArrays = tuple[np.ndarray, np.ndarray, np.ndarray]
@@ -292,7 +293,22 @@ def to_mitsuba_mesh(
     params["vertex_positions"] = mi.Float(np.ascontiguousarray(v, np.float32).ravel())
     params["faces"] = mi.UInt32(np.ascontiguousarray(f, np.uint32).ravel())
     params["vertex_texcoords"] = mi.Float(np.ascontiguousarray(uv, np.float32).ravel())
-    params.update()
     if smooth:
-        mesh.recompute_vertex_normals()
+        # Our own normals, not mesh.recompute_vertex_normals(): Mitsuba's scatter-adds them in
+        # parallel, whose summation order (hence the last bits, hence the pixels) varies per run.
+        params["vertex_normals"] = mi.Float(vertex_normals(v, f).ravel())
+    params.update()
     return mesh
+
+
+def vertex_normals(v: np.ndarray, f: np.ndarray) -> np.ndarray:
+    """Area-weighted unit vertex normals (N, 3) float32, summed in a fixed order (deterministic)."""
+    v = np.asarray(v, np.float64)
+    fn = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])  # length = 2 * area
+    n = np.zeros_like(v)
+    for k in range(3):
+        np.add.at(n, f[:, k], fn)
+    length = np.linalg.norm(n, axis=1, keepdims=True)
+    # Vertices of no face (dropped degenerate triangles) get any unit normal.
+    n = np.where(length > 0, n / np.maximum(length, 1e-300), np.array([0.0, 1.0, 0.0]))
+    return np.ascontiguousarray(n, np.float32)

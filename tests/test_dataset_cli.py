@@ -1,0 +1,182 @@
+"""`mcdenoise dataset`: splits, determinism across shards, resume after a kill, merge, sequences."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mcdenoise.cli.main import main
+from mcdenoise.data.dataset import Dataset, read_manifest
+from mcdenoise.data.format import read_image
+from mcdenoise.render.procedural import derive_seed
+from mcdenoise.render.procedural_dataset import shard_indices
+
+pytestmark = pytest.mark.render
+
+# Tiny but real: 16x16, 2 spp, reference 16 spp, few objects (JIT time grows with objects).
+TINY = ["--spp", "2", "--ref-spp", "16", "--size", "16", "--objects", "10-12", "--seed", "4", "--no-progress"]
+
+
+def _run(*args: str) -> int:
+    return main(["dataset", *args])
+
+
+def _radiance(folder: Path) -> np.ndarray:
+    return read_image(folder).read_noisy(["radiance"])["radiance"]
+
+
+@pytest.fixture(scope="module")
+def ds(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    root = tmp_path_factory.mktemp("ds") / "data"
+    assert _run("--count", "3", "--out", str(root), *TINY) == 0
+    return root
+
+
+def test_dataset_valid_split(ds: Path) -> None:
+    d = Dataset(ds)
+    assert len(d) == 3
+    entries = read_manifest(ds)
+    assert [e["path"] for e in entries] == ["proc_000000", "proc_000001", "proc_000002"]
+    # Three scenes: one per split, each scene in exactly one split.
+    assert sorted(e["split"] for e in entries) == ["test", "train", "val"]
+    for split in ("train", "val", "test"):
+        assert len(d.scenes(split)) == 1
+    for i, img in enumerate(d.images()):
+        assert img.meta.scene == f"proc_{i:06d}"
+        proc = img.meta.extra["procedural"]
+        assert proc["seed"] == derive_seed(4, i) and proc["index"] == i
+        assert proc["kind"] in ("indoor", "outdoor")
+        rad = img.read_noisy(["radiance"])["radiance"]
+        ref = img.read_reference(["radiance"])["radiance"]
+        assert rad.shape == (3, 16, 16) and np.isfinite(rad).all() and rad.mean() > 0
+        assert np.isfinite(ref).all() and ref.mean() > 0
+        assert img.samples is not None and img.samples.spp == 2
+
+
+def test_shards_are_disjoint_and_cover() -> None:
+    parts = [set(shard_indices(10, i, 3)) for i in range(3)]
+    assert set().union(*parts) == set(range(10))
+    assert sum(len(p) for p in parts) == 10
+    assert parts[1] == {1, 4, 7}
+
+
+def test_shard_renders_same_image_and_merges_by_copying(ds: Path, tmp_path: Path) -> None:
+    shard = tmp_path / "shard1"
+    assert _run("--count", "3", "--out", str(shard), "--shard", "1/3", *TINY) == 0
+    assert sorted(p.name for p in shard.iterdir() if p.name.startswith("proc_")) == ["proc_000001"]
+    # Another machine's shard renders the very same pixels for image 1.
+    np.testing.assert_array_equal(_radiance(shard / "proc_000001"), _radiance(ds / "proc_000001"))
+    # Merge: copy the other shards' folders in, rebuild the manifest.
+    for name in ("proc_000000", "proc_000002"):
+        shutil.copytree(ds / name, shard / name)
+    assert _run("--merge", "--out", str(shard)) == 0
+    assert read_manifest(shard) == read_manifest(ds)
+
+
+def test_resume_after_kill(ds: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    root = tmp_path / "resume"
+    shutil.copytree(ds, root)
+    # Simulated kill while image 1 was being written: its folder never got renamed into place and
+    # a half-written temporary folder is left behind.
+    shutil.rmtree(root / "proc_000001")
+    junk = root / ".proc_000001.tmp-999-deadbeef"
+    junk.mkdir()
+    (junk / "samples.bin").write_bytes(b"MCDSAMPL half written")
+    before = (root / "proc_000000" / "meta.json").stat()
+    other = root / "proc_000000" / "noisy.exr"
+    other_mtime = other.stat().st_mtime_ns
+    time.sleep(0.01)
+    capsys.readouterr()
+    assert _run("--count", "3", "--out", str(root), *TINY) == 0
+    out = capsys.readouterr()
+    assert "rendered 1 image(s)" in out.out and "2 already done" in out.out
+    assert "removed 1 partial leftover" in out.err
+    assert not junk.exists()
+    after = (root / "proc_000000" / "meta.json").stat()
+    assert (after.st_ino, after.st_mtime_ns) == (before.st_ino, before.st_mtime_ns)  # not re-rendered
+    assert other.stat().st_mtime_ns == other_mtime
+    np.testing.assert_array_equal(_radiance(root / "proc_000001"), _radiance(ds / "proc_000001"))
+    assert read_manifest(root) == read_manifest(ds)
+    # A run with nothing left to do renders nothing.
+    assert _run("--count", "3", "--out", str(root), *TINY) == 0
+    assert "rendered 0 image(s)" in capsys.readouterr().out
+
+
+def test_other_options_are_refused(ds: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    capsys.readouterr()
+    args = [a if a != "2" else "4" for a in TINY]  # --spp 4
+    assert _run("--count", "3", "--out", str(ds), *args) == 1
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "dataset.json" in err and "spp" in err
+    assert _run("--count", "3", "--out", str(ds), "--shard", "3/3") == 1
+    assert "--shard" in capsys.readouterr().err
+    assert _run("--out", str(ds)) == 1
+    assert "--count" in capsys.readouterr().err
+
+
+def test_merge_without_dataset_is_one_line_error(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert _run("--merge", "--out", str(tmp_path)) == 1
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "dataset.json" in err
+
+
+def test_sequence_frames_have_consistent_motion(tmp_path: Path) -> None:
+    from mcdenoise.render.sequence import project
+
+    root = tmp_path / "seq"
+    assert _run("--count", "1", "--frames", "2", "--out", str(root), *TINY) == 0
+    entries = read_manifest(root)
+    assert [e["path"] for e in entries] == ["proc_000000/frame_000", "proc_000000/frame_001"]
+    assert len({e["split"] for e in entries}) == 1 and [e["frame"] for e in entries] == [0, 1]
+    f0, f1 = read_image(root / entries[0]["path"]), read_image(root / entries[1]["path"])
+    n0 = f0.read_noisy(["motion", "position"])
+    np.testing.assert_array_equal(n0["motion"], 0.0)  # first frame: no history
+    n1 = f1.read_noisy(["motion", "position"])
+    cur = np.asarray(f1.meta.extra["camera_to_world"])
+    prev = np.asarray(f1.meta.extra["camera_to_world_prev"])
+    assert not np.allclose(cur, prev)  # the camera does move
+    np.testing.assert_allclose(prev, np.asarray(f0.meta.extra["camera_to_world"]))
+    # Current pixel minus motion = where the pixel's world position projects in the previous
+    # camera. Positions are means over samples (blurred at silhouettes, and by depth of field:
+    # this scene has a thin lens), motion uses the pixel-centre hit, so compare robustly.
+    fov = f1.meta.scene_features["fov"]
+    pos = n1["position"].transpose(1, 2, 0)
+    hit = np.abs(pos).sum(-1) > 0
+    xy, front = project(pos, prev, fov, 16, 16)
+    y, x = np.mgrid[0:16, 0:16]
+    err = np.hypot(x + 0.5 - n1["motion"][0] - xy[..., 0], y + 0.5 - n1["motion"][1] - xy[..., 1])
+    ok = hit & front
+    assert ok.mean() > 0.3
+    assert np.median(err[ok]) < 0.5
+    assert np.abs(n1["motion"]).max() > 0.5  # and the motion is not trivially small
+
+
+@pytest.mark.slow
+def test_count_20_end_to_end(tmp_path: Path) -> None:
+    """The issue's acceptance run, at a small size: 20 random scenes, default object counts."""
+    root = tmp_path / "ds20"
+    t0 = time.perf_counter()
+    cmd = [sys.executable, "-m", "mcdenoise.cli.main", "dataset", "--count", "20", "--out", str(root),
+           "--spp", "4", "--ref-spp", "64", "--size", "32", "--seed", "1", "--no-progress"]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=3600)
+    seconds = time.perf_counter() - t0
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    d = Dataset(root)
+    assert len(d) == 20
+    split_of = {e["scene"]: e["split"] for e in read_manifest(root)}
+    assert len(split_of) == 20 and set(split_of.values()) == {"train", "val", "test"}
+    kinds = set()
+    for img in d.images():
+        kinds.add(img.meta.extra["procedural"]["kind"])
+        assert np.isfinite(img.read_noisy(["radiance"])["radiance"]).all()
+        assert np.isfinite(img.read_reference(["radiance"])["radiance"]).all()
+    assert kinds == {"indoor", "outdoor"}
+    (tmp_path / "timing.json").write_text(json.dumps({"seconds": seconds}))
+    print(f"\n--count 20 at 32x32, 4 spp, reference 64 spp: {seconds:.1f} s")
