@@ -144,10 +144,27 @@ def test_gather_bad_input(image_shape, weight_shape, needle: str, impl: str) -> 
     assert needle in str(err.value)
 
 
-def test_impl_switch() -> None:
+def test_impl_switch(monkeypatch: pytest.MonkeyPatch) -> None:
+    import importlib
+
+    # The package re-exports functions named like their modules, so fetch the modules themselves.
+    gather_mod = importlib.import_module("mcdenoise.ops.gather")
+    splat_mod = importlib.import_module("mcdenoise.ops.splat")
+
+    calls: list[str] = []
+    monkeypatch.setattr(gather_mod, "gather_reference", lambda *a: calls.append("gather") or torch.zeros(1))
+    monkeypatch.setattr(splat_mod, "splat_reference", lambda *a: calls.append("splat") or (torch.zeros(1),) * 2)
+    x, w = torch.zeros(1, 1, 3, 3), torch.zeros(1, 9, 3, 3)
     assert get_default_impl() == "auto"
+    gather(x, w)
+    splat(x[:, None], w[:, None])
+    assert calls == []
     with use_impl("reference"):
         assert get_default_impl() == "reference"
+        gather(x, w)
+        splat(x[:, None], w[:, None])
+        gather(x, w, impl="fast")  # an explicit choice wins over the switch
+    assert calls == ["gather", "splat"]
     assert get_default_impl() == "auto"
     with pytest.raises(ValueError, match="impl must be one of"):
         gather(torch.zeros(1, 1, 3, 3), torch.zeros(1, 9, 3, 3), impl="triton-someday")

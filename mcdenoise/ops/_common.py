@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import contextvars
 import math
 from typing import Iterator
 
@@ -14,14 +15,14 @@ __all__ = ["IMPLS", "use_impl", "resolve_impl", "check_tensor", "kernel_size_fro
 IMPLS = ("auto", "reference", "fast")
 
 # "auto" lets every op pick its fast path; use_impl("reference") forces the plain references
-# everywhere (for debugging a model against the clear versions).  Scoped by a context manager so
-# that no caller has to mutate a global by hand.
-_default_impl: list[str] = ["auto"]
+# everywhere (for debugging a model against the clear versions).  A context variable scoped by a
+# context manager: no caller mutates a global by hand, and threads do not see each other's choice.
+_default_impl: contextvars.ContextVar[str] = contextvars.ContextVar("mcdenoise_ops_impl", default="auto")
 
 
 def get_default_impl() -> str:
     """The implementation ``impl="auto"`` currently resolves against (``"auto"`` unless forced)."""
-    return _default_impl[-1]
+    return _default_impl.get()
 
 
 @contextlib.contextmanager
@@ -33,11 +34,11 @@ def use_impl(impl: str) -> Iterator[None]:
     """
     if impl not in IMPLS:
         raise ValueError(f"impl must be one of {IMPLS}, got {impl!r}")
-    _default_impl.append(impl)
+    token = _default_impl.set(impl)
     try:
         yield
     finally:
-        _default_impl.pop()
+        _default_impl.reset(token)
 
 
 def resolve_impl(impl: str, op: str) -> str:
@@ -45,7 +46,7 @@ def resolve_impl(impl: str, op: str) -> str:
     if impl not in IMPLS:
         raise ValueError(f"{op}: impl must be one of {IMPLS}, got {impl!r}")
     if impl == "auto":
-        impl = _default_impl[-1]
+        impl = _default_impl.get()
     return "fast" if impl == "auto" else impl
 
 
