@@ -356,3 +356,34 @@ def test_fast_path_memory_does_not_keep_unfold() -> None:
     out = gather(x, w, impl="fast")
     saved = out.grad_fn.saved_tensors  # type: ignore[union-attr]
     assert {t.data_ptr() for t in saved} == {x.data_ptr(), w.data_ptr()}
+
+
+@pytest.mark.parametrize("which", [0, 1])
+def test_partial_gradients_match_reference(which: int) -> None:
+    # Only one input requires grad: the custom backward must skip the other and still be right.
+    g = torch.Generator().manual_seed(11)
+    v = torch.randn(2, 3, 2, 5, 6, generator=g, dtype=F64)
+    w = torch.rand(2, 3, 25, 5, 6, generator=g, dtype=F64)
+    up = torch.randn(2, 2, 5, 6, generator=g, dtype=F64)
+    grads = []
+    for impl in ("fast", "reference"):
+        ins = [v.clone(), w.clone()]
+        ins[which].requires_grad_()
+        num, ws = splat(*ins, impl=impl, chunk=2)
+        ((num * up).sum() + ws.square().sum()).backward()
+        assert ins[1 - which].grad is None
+        grads.append(ins[which].grad)
+    torch.testing.assert_close(grads[0], grads[1], rtol=1e-12, atol=1e-12)
+
+
+def test_float32_fast_close_to_float64_reference() -> None:
+    # What the models run: float32 fast paths against the float64 references, K = 21.
+    g = torch.Generator().manual_seed(12)
+    x = torch.rand(1, 3, 24, 20, generator=g, dtype=F64)
+    w = softmax_kernel(torch.randn(1, 441, 24, 20, generator=g, dtype=F64))
+    torch.testing.assert_close(gather(x.float(), w.float()).double(), gather_reference(x, w), rtol=1e-5, atol=1e-6)
+    v = torch.rand(1, 4, 3, 24, 20, generator=g, dtype=F64)
+    lw = exp_kernel(torch.randn(1, 4, 441, 24, 20, generator=g, dtype=F64))
+    ref = normalize_splat(*splat_reference(v, lw))
+    fast = normalize_splat(*splat(v.float(), lw.float()))
+    torch.testing.assert_close(fast.double(), ref, rtol=1e-5, atol=1e-6)
