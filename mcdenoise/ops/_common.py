@@ -7,7 +7,6 @@ import contextvars
 import math
 from typing import Iterator
 
-import torch
 from torch import Tensor
 
 __all__ = ["IMPLS", "use_impl", "resolve_impl", "check_tensor", "kernel_size_from", "get_default_impl"]

@@ -14,7 +14,6 @@ Memory (float32, B images of C x H x W, K x K kernels):
 
 from __future__ import annotations
 
-import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
