@@ -200,7 +200,9 @@ def register() -> None:
                     dist[si.is_valid()] += si.t
                     if dr.hint(self.roughness_table is not None, mode="scalar"):
                         bid = dr.reinterpret_array(mi.UInt32, bsdf)
-                        rough = dr.gather(mi.Float, self.roughness_table, bid, hit_first)
+                        # BSDFs the table does not know (e.g. inside instances) read as 0.
+                        known = hit_first & (bid < dr.width(self.roughness_table))
+                        rough = dr.gather(mi.Float, self.roughness_table, bid, known)
                         roughness[hit_first] = rough
                     albedo_d[new_d] = refl
                     normal_d[new_d] = si.sh_frame.n
