@@ -294,7 +294,9 @@ def test_render_image_folder(tmp_path, cornell, settings):
     from mcdenoise.errors import SceneError
     from mcdenoise.render import render_image
 
-    out = render_image(cornell, tmp_path / "img", settings, scene_name="cornell-box", record_position=True)
+    motion = np.full((2, H, W), 0.25, np.float32)
+    out = render_image(cornell, tmp_path / "img", settings, scene_name="cornell-box", record_position=True,
+                       extra_noisy={"motion": motion})
     assert sorted(p.name for p in tmp_path.iterdir()) == ["img"]  # nothing left aside
     img = read_image(out)
     assert img.meta.spp == S and img.meta.reference_spp == 16 and img.meta.scene == "cornell-box"
@@ -302,6 +304,9 @@ def test_render_image_folder(tmp_path, cornell, settings):
     assert set(img.meta.scene_features) == {"fov", "aperture_radius", "focus_distance", "shutter_open", "shutter_close"}
     noisy = img.read_noisy()
     assert "radiance_variance" in noisy and "position" in noisy
+    np.testing.assert_array_equal(noisy["motion"], motion)
+    # Per-pixel position is the mean first-hit position: inside the box.
+    assert np.abs(noisy["position"]).max() <= 1.0 + 1e-3 and np.abs(noisy["position"]).mean() > 0.1
     ref = img.read_reference()
     assert ref is not None and ref["radiance"].shape == (3, H, W)
     smp = img.samples.read(["radiance", "lobes"])

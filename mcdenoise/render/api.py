@@ -732,11 +732,13 @@ def render_image(
     camera_to_world: np.ndarray | None = None,
     record_position: bool = False,
     overwrite: bool = False,
+    extra_noisy: dict[str, np.ndarray] | None = None,
 ) -> Path:
     """Render one image folder (per-sample data, noisy.exr, reference.exr, meta.json), atomically.
 
     The per-sample data is streamed to disk band by band, so memory stays bounded at any size.
-    ``record_position`` adds a per-pixel ``position`` buffer (mean over samples) to noisy.exr.
+    ``record_position`` adds a per-pixel ``position`` buffer (mean over samples) to noisy.exr;
+    ``extra_noisy`` adds caller-made per-pixel layers ``(C, H, W)`` (e.g. ``motion``).
     """
     from mcdenoise.data import format as fmt
 
@@ -786,12 +788,10 @@ def render_image(
             reference = render_reference(scene, settings, camera_to_world=camera_to_world)
         t2 = _time.perf_counter()
         meta.extra["render_seconds"] = {"samples": round(t1 - t0, 3), "reference": round(t2 - t1, 3)}
-        noisy = None
+        per_pixel = dict(extra_noisy or {})
         if pos_sum is not None:
-            # The writer's streamed per-pixel statistics plus our per-pixel world position.
-            noisy = writer._noisy_from_disk()
-            noisy["position"] = (pos_sum / settings.spp).astype(np.float32)
+            per_pixel["position"] = (pos_sum / settings.spp).astype(np.float32)
     except BaseException:
         writer.abort()
         raise
-    return writer.finish(noisy=noisy, reference=reference)
+    return writer.finish(reference=reference, extra_noisy=per_pixel or None)
