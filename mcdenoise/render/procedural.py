@@ -515,6 +515,9 @@ def _outdoor(b: _Builder, n_objects: int, width: int, height: int) -> _Camera:
             "type": "sunsky", "id": "sky",
             "sun_direction": [math.cos(elev) * math.sin(az), math.sin(elev), -math.cos(elev) * math.cos(az)],
             "turbidity": float(rng.uniform(2.0, 8.0)), "sun_scale": 1.0, "sky_scale": 1.0,
+            # Mitsuba's sunsky is Z-up; our world is Y-up. sun_direction is in world space
+            # (checked: with this rotation a sun at +Y lights the sky above, none below).
+            "to_world": _xform(_rotate([1, 0, 0], -np.pi / 2)),
         })
         b.textures["sunsky"] = 1
     else:

@@ -258,8 +258,11 @@ def render_procedural_image(
     from mcdenoise.render.sequence import camera_path, motion_vectors, primary_hits
 
     scene_seed = derive_seed(cfg.seed, index)
+    t0 = time.perf_counter()
     ps = generate(scene_seed, kind=cfg.kind, width=cfg.width, height=cfg.height, objects=tuple(cfg.objects))
+    t1 = time.perf_counter()
     scene = load_scene(ps.scene, width=cfg.width, height=cfg.height)
+    t2 = time.perf_counter()
     name = scene_name(index)
     meta: dict[str, Any] = {
         "procedural": {
@@ -269,6 +272,9 @@ def render_procedural_image(
             "drawn_seed": ps.drawn_seed,
             "attempts": ps.attempts,
             **ps.info,
+            # Drawing + preview check (its JIT compilation included), and the scene load.
+            "generate_seconds": round(t1 - t0, 3),
+            "load_seconds": round(t2 - t1, 3),
         }
     }
     if cfg.frames == 1:
