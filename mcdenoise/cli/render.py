@@ -52,7 +52,8 @@ def add_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", type=Path, help="image folder to create")
     p.add_argument("--spp", type=int, default=8, help="samples per pixel of the per-sample input (default 8)")
     p.add_argument("--ref-spp", type=int, default=4096, help="samples per pixel of the reference; 0 = none (default 4096)")
-    p.add_argument("--size", default="256x256", help="WIDTHxHEIGHT (default 256x256)")
+    p.add_argument("--size", default=None,
+                   help="WIDTHxHEIGHT or N (default: the scene file's film size; 256x256 for built-in scenes)")
     p.add_argument("--seed", type=int, default=0, help="sampler seed (the reference derives its own)")
     p.add_argument("--max-depth", type=int, default=6, help="Mitsuba max_depth of input and reference (default 6)")
     p.add_argument("-D", dest="defines", action="append", default=[], metavar="NAME=VALUE",
@@ -76,15 +77,19 @@ def run(args: argparse.Namespace) -> int:
         raise SceneError("no scene given (a Mitsuba 3 XML file or a built-in name; see --list)")
     if args.out is None:
         raise SceneError("--out DIR is required")
-    w, h = parse_size(args.size)
+    size = parse_size(args.size) if args.size else None
     defines = parse_defines(args.defines)
     channels = tuple(c.strip() for c in args.channels.split(",") if c.strip()) if args.channels else None
+    # Refuse bad numbers before paying for the scene load.
+    RenderSettings(spp=args.spp, ref_spp=args.ref_spp, max_depth=args.max_depth, channels=channels).check()
     extra = builtin_motion(args.scene) if args.scene in builtins else {}
+    t0 = time.perf_counter()
+    scene = load_scene(args.scene, defines=defines, width=size[0] if size else None, height=size[1] if size else None)
+    film = scene.sensors()[0].film().size()
+    w, h = int(film[0]), int(film[1])
     settings = RenderSettings(spp=args.spp, ref_spp=args.ref_spp, width=w, height=h, seed=args.seed,
                               max_depth=args.max_depth, channels=channels, **extra)
     settings.check()
-    t0 = time.perf_counter()
-    scene = load_scene(args.scene, defines=defines, width=w, height=h)
     name = args.scene if args.scene in builtins else Path(args.scene).stem
     out = render_image(scene, args.out, settings, scene_name=name, record_position=args.position,
                        overwrite=args.overwrite, extra_meta={"source": str(args.scene), "defines": defines})
