@@ -24,6 +24,9 @@ from torch import nn
 from mcdenoise.data.channels import SCENE_FEATURES, num_components
 from mcdenoise.models.blocks import FCStack, UNet, per_destination_exp, per_pixel_exp, signed_log1p
 from mcdenoise.models.registry import Denoiser, register_model
+from mcdenoise.ops.gather import gather
+from mcdenoise.ops.multiscale import build_pyramid, combine_levels
+from mcdenoise.ops.splat import splat
 
 __all__ = ["LayerConfig", "LayerDenoiser", "LAYER_CHANNELS"]
 
@@ -230,14 +233,10 @@ class LayerDenoiser(Denoiser):
         k = cfg.kernel_size
         vals = torch.cat([l_rad, l_w, l_n], dim=2)  # (B, L, 5, h, w)
         if cfg.splat:
-            from mcdenoise.ops.splat import splat
-
             # One shift shared by all layers so the weighted sum (Eq. 6) stays exact too.
             weights = per_destination_exp(logits, k)
             num, _ = splat(vals.reshape(b * nl, 1, 5, h, w), weights.reshape(b * nl, 1, kk, h, w))
         else:
-            from mcdenoise.ops.gather import gather
-
             weights = per_pixel_exp(logits)
             num = gather(vals.reshape(b * nl, 5, h, w), weights.reshape(b * nl, kk, h, w))
         num = num.reshape(b, nl, 5, h, w)
@@ -266,8 +265,6 @@ class LayerDenoiser(Denoiser):
 
     def _forward_hierarchical(self, e: torch.Tensor, radiance: torch.Tensor) -> torch.Tensor:
         """Sec. 6: filter and composite each pyramid level on its own (G_i), then Eq. 10."""
-        from mcdenoise.ops.multiscale import build_pyramid, combine_levels
-
         cfg = self.config
         ctx, decoded = self.unet(e.mean(dim=1), return_decoder=True)
         l_rad, l_w, l_n, l_emb = self.partition(e, ctx, radiance)

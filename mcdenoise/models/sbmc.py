@@ -29,6 +29,8 @@ from torch import nn
 from mcdenoise.data.channels import SCENE_FEATURES, num_components
 from mcdenoise.models.blocks import FCStack, UNet, per_destination_exp, per_pixel_exp, signed_log1p
 from mcdenoise.models.registry import Denoiser, register_model
+from mcdenoise.ops.gather import gather
+from mcdenoise.ops.splat import SplatAccumulator, normalize_splat, splat
 
 __all__ = ["SBMCConfig", "SBMC", "SBMC_CHANNELS"]
 
@@ -172,7 +174,7 @@ class SBMC(Denoiser):
     def embed(self, f: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Algorithm 1's loop: ``f`` (B, S, F, H, W) -> (E_n (B, S, D, H, W), C_n (B, D, H, W))."""
         e = self.embed0(f)
-        ctx = e.mean(dim=1)
+        ctx = f.new_zeros(0)  # replaced by the first step (steps >= 1)
         for unet, fc in zip(self.unets, self.embeds):
             ctx = unet(e.mean(dim=1))  # mean over samples: permutation invariant, any S
             e = fc(e, ctx)
@@ -185,8 +187,6 @@ class SBMC(Denoiser):
 
     def _splat_chunked(self, e: torch.Tensor, ctx: torch.Tensor, radiance: torch.Tensor, chunk: int) -> torch.Tensor:
         """Eq. 1 with kernels generated ``chunk`` samples at a time (same result as all at once)."""
-        from mcdenoise.ops.splat import SplatAccumulator
-
         k = self.config.kernel_size
         s = e.shape[1]
         src_max = None
@@ -202,8 +202,6 @@ class SBMC(Denoiser):
 
     def forward(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
         """Denoise: per-sample buffers -> ``(B, 3, H, W)`` linear radiance."""
-        from mcdenoise.ops.splat import normalize_splat
-
         cfg = self.config
         f, radiance = self.features(batch)
         e, ctx = self.embed(f)
@@ -216,12 +214,8 @@ class SBMC(Denoiser):
             return self._splat_chunked(e, ctx, radiance, chunk)
         logits = self.kernel(e, ctx)
         if cfg.splat:
-            from mcdenoise.ops.splat import splat
-
             num, wsum = splat(radiance, per_destination_exp(logits, k))
         else:
-            from mcdenoise.ops.gather import gather
-
             # Each sample index is its own 1-spp image gathered with its own kernels (Fig. 5a); a
             # ones channel gives the weight that fell inside the image for the normalisation.
             b, s, _, h, w = radiance.shape
