@@ -5,6 +5,8 @@ from __future__ import annotations
 import pytest
 import torch
 
+from conftest import DEVICES
+
 from mcdenoise.ops import (
     SplatAccumulator,
     exp_kernel,
@@ -18,12 +20,6 @@ from mcdenoise.ops import (
     use_impl,
 )
 
-DEVICES = [
-    "cpu",
-    pytest.param(
-        "cuda", marks=pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device on this machine")
-    ),
-]
 F64 = torch.float64
 
 

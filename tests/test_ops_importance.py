@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import pytest
 import torch
+
+from conftest import DEVICES
 import torch.nn.functional as F
 
 from mcdenoise.ops import (
@@ -14,12 +16,6 @@ from mcdenoise.ops import (
     importance_kernel_reference,
 )
 
-DEVICES = [
-    "cpu",
-    pytest.param(
-        "cuda", marks=pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device on this machine")
-    ),
-]
 F64 = torch.float64
 
 

@@ -5,6 +5,8 @@ from __future__ import annotations
 import pytest
 import torch
 
+from conftest import DEVICES
+
 from mcdenoise.ops import (
     combine_levels,
     downsample2,
@@ -15,12 +17,6 @@ from mcdenoise.ops import (
     upsample2,
 )
 
-DEVICES = [
-    "cpu",
-    pytest.param(
-        "cuda", marks=pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device on this machine")
-    ),
-]
 F64 = torch.float64
 SIZES = [(8, 8), (7, 9), (5, 6), (1, 1)]
 
