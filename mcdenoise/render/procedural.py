@@ -371,7 +371,7 @@ def _rect(center: Any, normal_rot: np.ndarray, sx: float, sy: float) -> np.ndarr
     return _translate(center) @ normal_rot @ _scale([sx, sy, 1.0])
 
 
-def _indoor(b: _Builder, n_objects: int, width: int, height: int) -> _Camera:
+def _indoor(b: _Builder, n_objects: int) -> _Camera:
     rng = b.rng
     w, dpt, h = rng.uniform(4, 10), rng.uniform(4, 10), rng.uniform(2.5, 4.0)
     hx, hz = w / 2, dpt / 2
@@ -499,7 +499,7 @@ def _poisson_disc(rng: np.random.Generator, lo: np.ndarray, hi: np.ndarray, radi
     return pts[:n]
 
 
-def _outdoor(b: _Builder, n_objects: int, width: int, height: int) -> _Camera:
+def _outdoor(b: _Builder, n_objects: int) -> _Camera:
     rng = b.rng
     ground_mat = _material(rng, b.materials, b.textures, kind=str(rng.choice(["diffuse", "roughplastic", "principled"])))
     if rng.random() < 0.5:
@@ -614,7 +614,7 @@ def _draw(
     n_objects = int(rng.integers(lo, hi + 1))
     dof = bool(rng.random() < 0.5)
     motion = bool(rng.random() < 0.5)
-    cam = (_indoor if kind == "indoor" else _outdoor)(b, n_objects, width, height)
+    cam = (_indoor if kind == "indoor" else _outdoor)(b, n_objects)
     sensor, aperture, focus = _sensor(b, cam, width, height, dof)
     cam_close = None
     obj_motion: dict[str, list[float]] = {}
@@ -692,7 +692,8 @@ class PreviewStats:
 
 
 def preview_stats(ps: ProceduralScene, *, size: int = PREVIEW_SIZE, spp: int = PREVIEW_SPP, seed: int = 0) -> PreviewStats:
-    """Render ``ps`` tiny with Mitsuba's path tracer plus a shape-index AOV and measure it."""
+    """Render ``ps`` tiny (long side ``size``) with Mitsuba's ``path`` at its static pose and
+    measure luminance statistics, plus object coverage from one ray per pixel centre."""
     mi = pm.mitsuba_module()
     scene = dict(ps.scene)
     sensor = copy.copy(scene["sensor"])

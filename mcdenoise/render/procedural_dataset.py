@@ -26,13 +26,13 @@ import json
 import re
 import shutil
 import time
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
 
-from mcdenoise.errors import FormatError, McDenoiseError, SceneError
+from mcdenoise.errors import FormatError, SceneError
 from mcdenoise.io.atomic import atomic_file
 
 __all__ = [
@@ -199,7 +199,7 @@ def clean_partial(root: Path, indices: list[int]) -> list[Path]:
         if entry.name.startswith(".proc_") and entry.name[1:].split(".", 1)[0] in mine:
             removed.append(entry)
         elif entry.name in mine and entry.is_dir():
-            # Staging folders ``.frame_003.partial`` and their writers' ``..frame_003.partial.tmp-*``.
+            # The writer's temporary folders ``.frame_003.tmp-*``.
             removed.extend(sub for sub in entry.iterdir() if sub.name.startswith("."))
     for p in removed:
         if p.is_dir() and not p.is_symlink():
@@ -229,21 +229,6 @@ def rebuild_manifest(root: str | Path, done: set[str] | None = None) -> Path:
     return write_manifest(root, entries)
 
 
-def _add_noisy_layers(folder: Path, layers: dict[str, np.ndarray]) -> None:
-    """Add per-pixel layers to ``folder/noisy.exr`` (rewritten atomically, header attributes kept)."""
-    from mcdenoise.io.exr import read_exr, read_exr_header, write_exr
-
-    path = folder / "noisy.exr"
-    header = read_exr_header(path)
-    attrs = {k: header[k] for k in ("mcdenoise_format_version", "spp") if k in header}
-    noisy = read_exr(path, unknown="keep")
-    clash = set(noisy) & set(layers)
-    if clash:
-        raise FormatError(path, f"already has layers {sorted(clash)}")
-    noisy.update(layers)
-    write_exr(path, noisy, attributes=attrs)
-
-
 def render_procedural_image(
     cfg: DatasetConfig,
     root: Path,
@@ -254,7 +239,7 @@ def render_procedural_image(
 ) -> None:
     """Draw scene ``index`` and render its frames listed in ``todo`` (relative paths)."""
     from mcdenoise.render import RenderSettings, load_scene, render_image
-    from mcdenoise.render.procedural import derive_seed, generate, look_at
+    from mcdenoise.render.procedural import derive_seed, generate
     from mcdenoise.render.sequence import camera_path, motion_vectors, primary_hits
 
     scene_seed = derive_seed(cfg.seed, index)
@@ -308,13 +293,9 @@ def render_procedural_image(
         else:
             pos, hit, dirs = primary_hits(scene, path[f], ps.fov, cfg.width, cfg.height)
             motion = motion_vectors(pos, hit, dirs, prev, ps.fov, cfg.width, cfg.height)
-        final = root / rel
-        staging = final.with_name(f".{final.name}.partial")
         frame_meta = {**meta, "frame": f, "frames": cfg.frames, "camera_to_world_prev": np.asarray(prev).tolist()}
-        render_image(scene, staging, settings, scene_name=name, extra_meta=frame_meta,
-                     camera_to_world=path[f], record_position=True, overwrite=True)
-        _add_noisy_layers(staging, {"motion": motion})
-        staging.rename(final)
+        render_image(scene, root / rel, settings, scene_name=name, extra_meta=frame_meta,
+                     camera_to_world=path[f], record_position=True, extra_noisy={"motion": motion})
         if on_image is not None:
             on_image(rel)
 
