@@ -507,7 +507,7 @@ def _trace_chunk(
     idx = dr.arange(mi.UInt32, n)
     idx //= dr.opaque(mi.UInt32, spp)
     py = idx // dr.opaque(mi.UInt32, W)
-    px = dr.fma(-dr.opaque(mi.UInt32, W), py, idx) if False else idx - py * dr.opaque(mi.UInt32, W)
+    px = idx - py * dr.opaque(mi.UInt32, W)
     py += dr.opaque(mi.UInt32, y0)
     pos = mi.Vector2f(mi.Float(px), mi.Float(py))
     sub = sampler.next_2d()
