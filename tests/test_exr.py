@@ -209,9 +209,13 @@ def test_preview(tmp_path: Path, kind, exposure, value, expected):
 
 @pytest.mark.render
 def test_real_mitsuba_aov_file(tmp_path: Path):
-    """An EXR written by Mitsuba 3 itself (aov integrator, scalar variant: no LLVM needed)."""
-    mi = pytest.importorskip("mitsuba")
-    mi.set_variant("scalar_rgb")
+    """An EXR written by Mitsuba 3 itself (aov integrator), in the variant the renderer uses.
+
+    Mitsuba's variant is process-global: switching it here would break every later render test.
+    """
+    from mcdenoise.render._mitsuba import mitsuba
+
+    mi = mitsuba()
     scene = mi.load_dict({
         "type": "scene",
         "integrator": {"type": "aov", "aovs": "dd.y:depth,nn:sh_normal,albedo:albedo", "img": {"type": "path"}},

@@ -399,3 +399,17 @@ def test_mitsuba_06_file_is_upgraded(tmp_path, mi):
     assert feats["aperture_radius"] == pytest.approx(0.05) and feats["focus_distance"] == pytest.approx(4.0)
     # Glass in a white furnace: energy is conserved up to noise.
     assert 0.5 < arrays["radiance"].mean() < 1.5
+
+
+def test_variant_switched_elsewhere_is_restored(mi, cornell, settings) -> None:
+    """Mitsuba's variant is process-global; a render after user code switched it still works."""
+    from mcdenoise.render import render_samples
+    from mcdenoise.render._mitsuba import VARIANT, mitsuba
+
+    mi.set_variant("scalar_rgb")
+    try:
+        assert mitsuba().variant() == VARIANT
+        arrays, _ = render_samples(cornell, settings, seed=1)
+        assert arrays["radiance"].shape == (S, 3, H, W)
+    finally:
+        mitsuba()

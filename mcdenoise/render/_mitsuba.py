@@ -42,6 +42,9 @@ def mitsuba() -> ModuleType:
     """The ``mitsuba`` module with variant ``llvm_ad_rgb`` set; raises SceneError when impossible."""
     global _MI
     if _MI is not None:
+        # The variant is process-global: user code (or a test) may have switched it since.
+        if _MI.variant() != VARIANT:
+            _MI.set_variant(VARIANT)
         return _MI
     if not os.environ.get("DRJIT_LIBLLVM_PATH"):
         lib = find_libllvm()
