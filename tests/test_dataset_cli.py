@@ -119,6 +119,12 @@ def test_other_options_are_refused(ds: Path, capsys: pytest.CaptureFixture[str])
     assert "--shard" in capsys.readouterr().err
     assert _run("--out", str(ds)) == 1
     assert "--count" in capsys.readouterr().err
+    for bad, word in ((["--size", "0"], "--size"), (["--size", "99999"], "--size"), (["--objects", "9-3"], "--objects"),
+                      (["--frames", "0"], "frames"), (["--split", "1,2"], "--split"), (["--shard", "x"], "--shard")):
+        assert _run("--count", "3", "--out", str(ds / "never"), *bad) == 1
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and word in err, err
+    assert not (ds / "never").exists()  # nothing is created when the options are wrong
 
 
 def test_merge_without_dataset_is_one_line_error(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
