@@ -294,8 +294,9 @@ def to_mitsuba_mesh(
     params["faces"] = mi.UInt32(np.ascontiguousarray(f, np.uint32).ravel())
     params["vertex_texcoords"] = mi.Float(np.ascontiguousarray(uv, np.float32).ravel())
     if smooth:
-        # Our own normals, not mesh.recompute_vertex_normals(): Mitsuba's scatter-adds them in
-        # parallel, whose summation order (hence the last bits, hence the pixels) varies per run.
+        # Our own normals, not mesh.recompute_vertex_normals(): that one accumulates with
+        # parallel scatter-adds, whose order is not guaranteed; a fixed numpy order is
+        # reproducible by construction (we did not measure Mitsuba's to differ).
         params["vertex_normals"] = mi.Float(vertex_normals(v, f).ravel())
     params.update()
     return mesh
