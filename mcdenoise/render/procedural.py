@@ -97,9 +97,8 @@ MIN_OBJECTS, MAX_OBJECTS = 10, 50
 MAX_ATTEMPTS = 12
 #: Preview size (pixels on the long side) and samples per pixel of the rejection check.
 PREVIEW_SIZE, PREVIEW_SPP = 32, 8
-#: Gap (metres) between the floor and the boxes standing on it. Coplanar faces make ray hits ties
-#: that the parallel BVH build breaks differently from run to run: pixels would not be
-#: reproducible.
+#: Gap (metres) between the floor and the boxes standing on it, so that no two faces are coplanar
+#: (ties between hits would be broken by BVH order; a precaution, not a measured problem).
 LIFT = 1e-3
 
 
