@@ -44,7 +44,7 @@ def _render(args: argparse.Namespace, folder: Path) -> float:
     settings.check()
     t0 = time.perf_counter()
     scene = load_scene(args.scene, width=args.size, height=args.size)
-    render_image(scene, folder, settings, scene_name=Path(args.scene).stem, overwrite=True)
+    render_image(scene, folder, settings, scene_name=Path(args.scene).stem, overwrite=True, progress=True)
     return time.perf_counter() - t0
 
 

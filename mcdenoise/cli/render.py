@@ -92,7 +92,7 @@ def run(args: argparse.Namespace) -> int:
     settings.check()
     name = args.scene if args.scene in builtins else Path(args.scene).stem
     out = render_image(scene, args.out, settings, scene_name=name, record_position=args.position,
-                       overwrite=args.overwrite, extra_meta={"source": str(args.scene), "defines": defines})
+                       overwrite=args.overwrite, progress=True, extra_meta={"source": str(args.scene), "defines": defines})
     print(f"wrote {out} ({w}x{h}, {settings.spp} spp, reference {settings.ref_spp} spp) "
           f"in {time.perf_counter() - t0:.1f} s", file=sys.stderr)
     return 0

@@ -22,12 +22,14 @@ from __future__ import annotations
 
 import json
 import os
+import sys
 import time as _time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Any, Iterator, Mapping, Sequence
+from typing import Any, Callable, Iterator, Mapping, Sequence
 
 import numpy as np
+from tqdm import tqdm
 
 from mcdenoise.data.channels import SCENE_FEATURES
 from mcdenoise.errors import SceneError
@@ -674,8 +676,11 @@ def render_reference(
     seed: int | None = None,
     camera_to_world: np.ndarray | None = None,
     spp: int | None = None,
+    progress: Callable[[int], None] | None = None,
 ) -> dict[str, np.ndarray]:
     """Reference image: name -> (C, H, W) float32 for radiance, diffuse, specular, albedo.
+
+    ``progress`` is called with the number of camera samples traced after each chunk.
 
     Seeds are derived from ``seed`` under a key the per-sample input never uses, so reference and
     input noise are independent. Object motion is resolved with ``spp`` stratified time slices.
@@ -715,6 +720,8 @@ def render_reference(
                     if name not in sums:
                         sums[name] = np.zeros((v.shape[0], H, W), dtype=np.float64)
                     sums[name][:, rows] += v
+                if progress is not None:
+                    progress(k * (rows.stop - rows.start) * W)
     finally:
         _restore(scene, prep)
     return {k: (sums[k] / spp).astype(np.float32) for k in REFERENCE_CHANNELS}
@@ -737,6 +744,7 @@ def render_image(
     camera_to_world: np.ndarray | None = None,
     record_position: bool = False,
     overwrite: bool = False,
+    progress: bool = False,
     extra_noisy: dict[str, np.ndarray] | None = None,
 ) -> Path:
     """Render one image folder (per-sample data, noisy.exr, reference.exr, meta.json), atomically.
@@ -780,6 +788,9 @@ def render_image(
         extra=extra,
     )
     writer = fmt.SampleWriter(out, meta, overwrite=overwrite)
+    total = settings.width * settings.height * (settings.spp + max(0, settings.ref_spp))
+    bar = tqdm(total=total, unit="sample", unit_scale=True, desc=f"render {out.name}", disable=not progress,
+               leave=False, file=sys.stderr)
     try:
         pos_sum = np.zeros((3, settings.height, settings.width), dtype=np.float64) if record_position else None
         for samples, rows, chunk in iter_sample_chunks(scene, settings, camera_to_world=camera_to_world, record_position=record_position):
@@ -787,10 +798,11 @@ def render_image(
                 pos_sum[:, rows] += chunk.pop("position").sum(axis=0, dtype=np.float64)
             for name in channels:
                 writer.write(name, chunk[name], samples=samples, rows=rows)
+            bar.update((samples.stop - samples.start) * (rows.stop - rows.start) * settings.width)
         t1 = _time.perf_counter()
         reference = None
         if settings.ref_spp > 0:
-            reference = render_reference(scene, settings, camera_to_world=camera_to_world)
+            reference = render_reference(scene, settings, camera_to_world=camera_to_world, progress=bar.update)
         t2 = _time.perf_counter()
         meta.extra["render_seconds"] = {"samples": round(t1 - t0, 3), "reference": round(t2 - t1, 3)}
         per_pixel = dict(extra_noisy or {})
@@ -799,4 +811,6 @@ def render_image(
     except BaseException:
         writer.abort()
         raise
+    finally:
+        bar.close()
     return writer.finish(reference=reference, extra_noisy=per_pixel or None)
