@@ -195,7 +195,3 @@ class WSKP(Denoiser):
 )
 class WSKPModel(WSKP):
     pass
-
-
-# Registers wskp_mr; kept in its own module because it shares only the inputs with WSKP.
-from mcdenoise.models import wskp_mr as _wskp_mr  # noqa: E402,F401
