@@ -5,7 +5,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from mcdenoise.models.blocks import FCStack, UNet, per_destination_exp
+from mcdenoise.models.blocks import FCStack, UNet
+from mcdenoise.ops.kernels import per_destination_exp
 from mcdenoise.models.registry import build_model, synthetic_batch
 from mcdenoise.ops.splat import normalize_splat, splat_reference
 

@@ -1,5 +1,5 @@
 """Building blocks shared by the denoisers: per-sample fully connected stacks, a configurable U-Net,
-padding helpers and numerically stable kernel exponentiation.
+padding helpers. (Kernel exponentiation lives in :mod:`mcdenoise.ops.kernels`.)
 
 Conventions: per-pixel tensors are ``(B, C, H, W)``; per-sample tensors are ``(B, S, C, H, W)``.
 All activations are leaky ReLU with slope 0.01 (SBMC Sec. 3.5, layer paper Appendix B).
@@ -20,8 +20,6 @@ __all__ = [
     "UNet",
     "pad_to_multiple",
     "broadcast_samples",
-    "per_pixel_exp",
-    "per_destination_exp",
     "signed_log1p",
 ]
 
@@ -225,49 +223,3 @@ class UNet(nn.Module):
 def broadcast_samples(x: torch.Tensor, spp: int) -> torch.Tensor:
     """``(B, C, H, W)`` -> ``(B, spp, C, H, W)`` view (no copy)."""
     return x.unsqueeze(1).expand(-1, spp, -1, -1, -1)
-
-
-def per_pixel_exp(logits: torch.Tensor) -> torch.Tensor:
-    """Exponentiate gather-kernel logits ``(B, S, K*K, H, W)`` after subtracting, per output pixel,
-    the max over its samples and taps.
-
-    A gather output pixel is normalised by the sum of its own weights only, so any per-pixel
-    constant cancels exactly and the largest weight of each pixel is 1 (no overflow/underflow).
-    """
-    m = logits.detach().amax(dim=(1, 2), keepdim=True)
-    return torch.exp(logits - m)
-
-
-def per_destination_exp(
-    logits: torch.Tensor, kernel_size: int, source_max: torch.Tensor | None = None
-) -> torch.Tensor:
-    """Exponentiate splat-kernel logits ``(B, S, K*K, H, W)`` so that normalisation stays exact.
-
-    A splat output pixel ``u`` is normalised by the sum of all weights that land on ``u``, coming
-    from different samples at different pixels. Subtracting a per-sample max (as a softmax would)
-    rescales samples against each other and changes the result; a single global max is exact but
-    lets a dim region underflow next to a bright one. Here every tap is shifted by a constant that
-    depends only on its destination pixel ``u``: ``c(u) = max`` of all logits of all samples within
-    ``K x K`` of ``u``, an upper bound of every logit landing on ``u``. Tap ``t = (i, j)`` of a
-    sample at ``x`` lands on ``u = x + (i - r, j - r)`` (flat index ``i*K + j``, ``r = K // 2``),
-    the splat convention of :mod:`mcdenoise.ops.splat`. The shift is constant per destination and
-    so cancels exactly in the per-pixel normalisation.
-
-    ``source_max`` ``(B, 1, H, W)``, if given, replaces the per-pixel max over samples and taps of
-    ``logits``: pass the max over *all* samples when ``logits`` holds only a chunk of them, so every
-    chunk gets the same shift.
-    """
-    b, s, kk, h, w = logits.shape
-    k = kernel_size
-    if kk != k * k:
-        raise ValueError(f"expected {k * k} kernel taps, got {kk}")
-    r = k // 2
-    with torch.no_grad():
-        # (B, 1, H, W): max logit of each source pixel
-        m = logits.amax(dim=(1, 2)).unsqueeze(1) if source_max is None else source_max.to(logits.dtype)
-        c = F.max_pool2d(m, k, stride=1, padding=r)  # (B, 1, H, W): max over sources near u
-        # Destination of tap (i, j) at x is x + (i - r, j - r): unfold gathers exactly that.
-        # Replicate padding: taps landing outside the image are dropped by the splat anyway.
-        cp = F.pad(c, (r, r, r, r), mode="replicate")
-        shift = F.unfold(cp, k).reshape(b, 1, kk, h, w)
-    return torch.exp(logits - shift)

@@ -27,7 +27,8 @@ import torch
 from torch import nn
 
 from mcdenoise.data.channels import SCENE_FEATURES, num_components
-from mcdenoise.models.blocks import FCStack, UNet, per_destination_exp, per_pixel_exp, signed_log1p
+from mcdenoise.models.blocks import FCStack, UNet, signed_log1p
+from mcdenoise.ops.kernels import per_destination_exp, per_pixel_exp
 from mcdenoise.models.registry import Denoiser, register_model
 from mcdenoise.ops.gather import gather
 from mcdenoise.ops.splat import SplatAccumulator, normalize_splat, splat

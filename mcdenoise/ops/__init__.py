@@ -19,7 +19,7 @@ from mcdenoise.ops.importance import (
     importance_filter_reference,
     importance_kernel_reference,
 )
-from mcdenoise.ops.kernels import ExpKernel, SoftmaxKernel, exp_kernel, softmax_kernel
+from mcdenoise.ops.kernels import ExpKernel, SoftmaxKernel, exp_kernel, per_destination_exp, per_pixel_exp, softmax_kernel
 from mcdenoise.ops.multiscale import (
     HierarchicalFilter,
     MultiresBlend,
@@ -54,6 +54,8 @@ __all__ = [
     "SplatAccumulator",
     "softmax_kernel",
     "exp_kernel",
+    "per_destination_exp",
+    "per_pixel_exp",
     "SoftmaxKernel",
     "ExpKernel",
     "importance_filter",

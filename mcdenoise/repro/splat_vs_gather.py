@@ -37,7 +37,8 @@ import torch.nn.functional as F
 from torch import nn
 
 from mcdenoise.io.atomic import atomic_file
-from mcdenoise.models.blocks import LEAK, per_destination_exp, per_pixel_exp
+from mcdenoise.models.blocks import LEAK
+from mcdenoise.ops.kernels import per_destination_exp, per_pixel_exp
 from mcdenoise.ops.gather import gather
 from mcdenoise.ops.splat import normalize_splat, splat
 
