@@ -27,7 +27,7 @@ def permute_samples(batch: dict[str, torch.Tensor], seed: int) -> dict[str, torc
 
 
 def rel_diff(a: torch.Tensor, b: torch.Tensor) -> float:
-    return float((a - b).abs().max() / b.abs().max())
+    return float(((a - b).abs().max() / b.abs().max()).detach())
 
 
 def set_identity_kernel(fc: FCStack, k: int) -> None:
