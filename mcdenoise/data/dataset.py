@@ -18,7 +18,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from mcdenoise.data.format import FORMAT_VERSION, META_FILE, ImageFolder
+from mcdenoise.data.format import FORMAT_VERSION, META_FILE, ImageFolder, read_json_document
 from mcdenoise.errors import FormatError
 from mcdenoise.io.atomic import atomic_file
 
@@ -106,14 +106,7 @@ def read_manifest(root: str | os.PathLike) -> list[dict[str, Any]]:
     path = Path(root) / MANIFEST_FILE
     if not path.is_file():
         raise FormatError(path, "no such file (not a dataset folder?)")
-    try:
-        doc = json.loads(path.read_text())
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise FormatError(path, f"corrupt JSON ({exc})") from None
-    if not isinstance(doc, dict) or doc.get("format") != "mcdenoise-dataset":
-        raise FormatError(path, "not an mcdenoise dataset manifest (format field)")
-    if doc.get("version") != FORMAT_VERSION:
-        raise FormatError(path, f"format version {doc.get('version')}, this reader reads version {FORMAT_VERSION}")
+    doc = read_json_document(path, "mcdenoise-dataset", "dataset manifest")
     entries = doc.get("images")
     if not isinstance(entries, list):
         raise FormatError(path, "no 'images' list")

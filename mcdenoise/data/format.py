@@ -148,6 +148,28 @@ class ImageMeta:
 # ----------------------------------------------------------------------------- helpers
 
 
+def read_json_document(path: str | os.PathLike, fmt: str | None = None, what: str = "") -> dict[str, Any]:
+    """Read a JSON object from ``path``; with ``fmt``, check its ``format`` and ``version`` fields.
+
+    Every JSON file of the format (meta.json, manifest.json, dataset.json) is read through here, so
+    each gives the same one-line :class:`FormatError` naming the file for corrupt JSON, a foreign
+    file, or another format version.
+    """
+    path = Path(path)
+    try:
+        doc = json.loads(path.read_text())
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise FormatError(path, f"corrupt JSON ({exc})") from None
+    if not isinstance(doc, dict):
+        raise FormatError(path, "not a JSON object")
+    if fmt is not None:
+        if doc.get("format") != fmt:
+            raise FormatError(path, f"not an mcdenoise {what or fmt} (format field)")
+        if doc.get("version") != FORMAT_VERSION:
+            raise FormatError(path, f"format version {doc.get('version')}, this reader reads version {FORMAT_VERSION}")
+    return doc
+
+
 def pixel_stats(samples: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Per-pixel mean and variance of the mean from ``(S, C, H, W)`` samples.
 
@@ -740,14 +762,7 @@ class ImageFolder:
             raise FormatError(self.path, "no such image folder")
         if not meta_path.is_file():
             raise FormatError(meta_path, "no such file (not an image folder?)")
-        try:
-            doc = json.loads(meta_path.read_text())
-        except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-            raise FormatError(meta_path, f"corrupt JSON ({exc})") from None
-        if not isinstance(doc, dict) or doc.get("format") != "mcdenoise-image":
-            raise FormatError(meta_path, "not an mcdenoise image meta.json (format field)")
-        if doc.get("version") != FORMAT_VERSION:
-            raise FormatError(meta_path, f"format version {doc.get('version')}, this reader reads version {FORMAT_VERSION}")
+        doc = read_json_document(meta_path, "mcdenoise-image", "image meta.json")
         self.meta = ImageMeta.from_json(doc, meta_path)
         files = doc.get("files", {})
         self._files = files

@@ -32,6 +32,7 @@ from typing import Any, Callable
 
 import numpy as np
 
+from mcdenoise.data.format import read_json_document
 from mcdenoise.errors import FormatError, SceneError
 from mcdenoise.io.atomic import atomic_file
 
@@ -142,11 +143,7 @@ def _read_config(root: Path) -> DatasetConfig | None:
     path = root / CONFIG_FILE
     if not path.exists():
         return None
-    try:
-        doc = json.loads(path.read_text())
-    except (UnicodeDecodeError, json.JSONDecodeError) as e:
-        raise FormatError(path, f"corrupt JSON ({e})") from None
-    return DatasetConfig.from_json(doc, path)
+    return DatasetConfig.from_json(read_json_document(path), path)
 
 
 def _write_config(root: Path, cfg: DatasetConfig) -> None:
