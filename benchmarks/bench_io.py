@@ -1,6 +1,6 @@
 """Measure the data format on a synthetic image: write time, full read, random-crop reads.
 
-Run: ``python -m mcdenoise.data.bench_io --size 256 --spp 16 --crop 64``. Prints one JSON object;
+Run: ``.venv/bin/python benchmarks/bench_io.py --size 256 --spp 16 --crop 64``. Prints one JSON object;
 nothing is kept on disk (a temporary folder is used).
 """
 
@@ -8,13 +8,16 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
-from mcdenoise.data.format import ImageMeta, read_image, write_image
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from mcdenoise.data.format import ImageMeta, read_image, write_image  # noqa: E402
 
 CHANNELS = ("radiance", "albedo", "normal", "depth")
 
