@@ -48,3 +48,34 @@ def test_console_script_runs() -> None:
     out = subprocess.run([sys.executable, "-m", "mcdenoise.cli.main", "--version"],
                          capture_output=True, text=True, check=True)
     assert __version__ in out.stdout
+
+
+def test_version_does_not_import_torch() -> None:
+    # `mcdenoise --version` and `--help` must stay instant: no torch or mitsuba at parser build.
+    code = "import sys; from mcdenoise.cli.main import build_parser; build_parser(); " \
+           "print('torch' in sys.modules, 'mitsuba' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.split() == ["False", "False"]
+
+
+def test_models_listing_json(capsys: pytest.CaptureFixture[str]) -> None:
+    import json
+
+    from mcdenoise.models.registry import MODELS
+
+    assert cli.main(["models", "--json", "--preset", "small"]) == 0
+    rows = {r["name"]: r for r in json.loads(capsys.readouterr().out)}
+    assert set(rows) == set(MODELS)
+    for r in rows.values():
+        info = r["presets"]["small"]
+        assert info["parameters"] > 0 and info["flops_per_pixel"] > 0 and info["channels"]
+        assert (info["input_kind"] == "samples") == ("flops_spp" in info)
+    # Independent check of the FLOP count: DPCN is convolutions at full resolution only, so its
+    # FLOPs per pixel are 2 x its convolution weights (parameters minus biases).
+    import torch
+
+    from mcdenoise.models.registry import build_model
+
+    dpcn = build_model("dpcn", "small")
+    weights = sum(m.weight.numel() for m in dpcn.modules() if isinstance(m, torch.nn.Conv2d))
+    assert rows["dpcn"]["presets"]["small"]["flops_per_pixel"] == 2 * weights
