@@ -371,11 +371,8 @@ class SampleWriter:
 
     def noisy_from_samples(self) -> dict[str, np.ndarray]:
         """Per-pixel ``name`` (mean) and ``name_variance`` (variance of the mean, see
-        :func:`pixel_stats`) ``(C, H, W)`` of every channel, from the samples written so far."""
-        return self._noisy_from_disk()
-
-    def _noisy_from_disk(self) -> dict[str, np.ndarray]:
-        """Mean and variance of the mean of every channel, streamed one band of tile rows at a time."""
+        :func:`pixel_stats`) ``(C, H, W)`` of every channel, from the samples written so far,
+        streamed one band of tile rows at a time."""
         h, w, s = self.meta.height, self.meta.width, self.meta.spp
         t = self.tile
         out: dict[str, np.ndarray] = {}
@@ -424,7 +421,7 @@ class SampleWriter:
         if self._done:
             raise RuntimeError("SampleWriter.finish called twice")
         if noisy is None:
-            noisy = self._noisy_from_disk()
+            noisy = self.noisy_from_samples()
         if extra_noisy:
             clash = set(extra_noisy) & set(noisy)
             if clash:
