@@ -28,12 +28,33 @@ def test_hdr_is_not_clamped_and_reduces_error() -> None:
     assert oidn_denoise(noisy, hdr=False).max() <= 1.0 + 1e-6
 
 
+#: Tolerance for comparing two OIDN runs on the same pixels, relative to the output's maximum.
+#: Threaded OIDN is not promised to be bitwise repeatable (this exact comparison failed 2 of 8
+#: full suite runs in the audit, issue 8). Measured here (OIDN 1.4.3, 2 cores): repeated runs and
+#: runs with 1-16 threads were identical, and a random walk of 1-16 ulp on every input moves the
+#: output by at most 2.1e-6 of its maximum, the scale any change of summation order produces.
+#: Reading the wrong pixels (the bug this test guards against) moves it by 3.05x its maximum.
+#: 1e-4 sits 50x above the first and 30000x below the second.
+RUN_TO_RUN_RTOL = 1e-4
+
+
+def _assert_same_denoise(got: np.ndarray, want: np.ndarray) -> None:
+    atol = RUN_TO_RUN_RTOL * float(np.abs(want).max())
+    np.testing.assert_allclose(got, want, rtol=0, atol=atol)
+
+
 def test_non_contiguous_input_matches_contiguous() -> None:
+    """Catches: OIDN reading a freed temporary or the wrong strides for a non-contiguous view
+    (garbage output), without failing on threaded OIDN's rounding-level run-to-run noise."""
     _, noisy = _noisy(1)
     wide = np.concatenate([noisy, noisy[:, :, ::-1] * 3], axis=2)  # (3, 48, 80)
     view = wide[:, :, :40]
     assert not view.flags.c_contiguous
-    np.testing.assert_array_equal(oidn_denoise(view), oidn_denoise(np.ascontiguousarray(view)))
+    want = oidn_denoise(np.ascontiguousarray(view))
+    _assert_same_denoise(oidn_denoise(view), want)
+    # The tolerance still sees the bug: the neighbouring pixels of the same buffer fail it.
+    with pytest.raises(AssertionError):
+        _assert_same_denoise(oidn_denoise(np.ascontiguousarray(wide[:, :, 40:])), want)
 
 
 def test_guides_and_bad_shapes() -> None:
