@@ -88,8 +88,6 @@ class LayerConfig:
     """Sec. 6: ``levels`` levels of ``kernel_size`` kernels at full, 1/2, 1/4... resolution (Eq. 10)."""
     levels: int = 3
     """Number of levels of the hierarchical variant."""
-    eps: float = 1e-6
-    """Added to the filtered occupancy (alpha) or weight sum (weighted) before dividing."""
 
 
 def _paper_layer(**kw: object) -> LayerConfig:
@@ -130,6 +128,16 @@ def _small_optimized(**kw: object) -> LayerConfig:
     # Three U-Net levels so that every pyramid level has decoder features at its resolution.
     common.update(unet_encoder=((8,), (16,), (24,)), unet_bottleneck=(32,), unet_decoder=((24,), (16,), (16,)))
     return LayerConfig(**common, kernel_widths=(8,), kernel_size=5, hierarchical=True, **kw)  # type: ignore[arg-type]
+
+
+def _ratio(num: torch.Tensor, den: torch.Tensor) -> torch.Tensor:
+    """``num / den`` where ``den > 0``, else 0; num (B, C, H, W), den (B, 1, H, W).
+
+    Scale-free, unlike ``num / (den + eps)``. The denominator is replaced before dividing (not
+    only the quotient) so that pixels with ``den == 0`` give a zero gradient instead of NaN.
+    """
+    pos = den > 0
+    return torch.where(pos, num / torch.where(pos, den, torch.ones_like(den)), torch.zeros_like(num))
 
 
 class LayerDenoiser(Denoiser):
@@ -228,28 +236,54 @@ class LayerDenoiser(Denoiser):
         return l_rad, l_w, l_n, l_emb
 
     def _filter(self, logits: torch.Tensor, l_rad: torch.Tensor, l_w: torch.Tensor, l_n: torch.Tensor) -> torch.Tensor:
-        """Eq. 3 then Eq. 4-6 at one resolution: logits (B, L, K*K, h, w) -> composited (B, 3, h, w)."""
+        """Eq. 3 then Eq. 4-6 at one resolution: logits (B, L, K*K, h, w), layer sums l_rad
+        (B, L, 3, h, w), l_w and l_n (B, L, 1, h, w) -> composited (B, 3, h, w)."""
         cfg = self.config
         b, nl, kk, h, w = logits.shape
         k = cfg.kernel_size
-        vals = torch.cat([l_rad, l_w, l_n], dim=2)  # (B, L, 5, h, w)
+        weighted = cfg.compositing == "weighted"
         if cfg.splat:
-            # One shift shared by all layers so the weighted sum (Eq. 6) stays exact too.
-            weights = per_destination_exp(logits, k)
-            num, _ = splat(vals.reshape(b * nl, 1, 5, h, w), weights.reshape(b * nl, 1, kk, h, w))
+            # Splat (den * x, den) with weights exp(logit) as (x, 1) with weights exp(logit +
+            # log den), den = the sum each layer is normalised by (l_w for Eq. 6, l_n for Eq. 4).
+            # Then the largest tap landing on a pixel carries weight 1 after the per-destination
+            # shift, even when the source with the largest logit has den = 0 (a softmax over
+            # layers that underflowed), so a filtered denominator cannot underflow to 0 while the
+            # exact one is positive.
+            den = l_w if weighted else l_n
+            pos = den > 0
+            safe = torch.where(pos, den, torch.ones_like(den))
+            parts = [l_rad / safe] if weighted else [l_rad / safe, l_w / safe]
+            vals = torch.cat(parts + [pos.to(den.dtype)], dim=2)
+            c = vals.shape[2]
+            # Sources with den = 0 add nothing (their values are 0); their logits are pushed below
+            # every real one so that they cannot set the shift and underflow the real taps.
+            floor = logits.detach().amin() - 200.0
+            lw = torch.where(pos, logits + torch.log(safe), floor)
+            # Eq. 6 sums over layers before dividing, so its shift is shared by all layers; Eq. 4-5
+            # divide within a layer only, and a per-layer shift keeps a layer far below the other
+            # one in logit from underflowing while it is still visible.
+            weights = per_destination_exp(lw if weighted else lw.reshape(b * nl, 1, kk, h, w), k)
+            num, _ = splat(vals.reshape(b * nl, 1, c, h, w), weights.reshape(b * nl, 1, kk, h, w))
+            num = num.reshape(b, nl, c, h, w)
+            rad, wbar, nbar = num[:, :, :3], num[:, :, 3:4], num[:, :, -1:]
         else:
+            vals = torch.cat([l_rad, l_w, l_n], dim=2)
             weights = per_pixel_exp(logits)
-            num = gather(vals.reshape(b * nl, 5, h, w), weights.reshape(b * nl, kk, h, w))
-        num = num.reshape(b, nl, 5, h, w)
-        rad, wbar, nbar = num[:, :, :3], num[:, :, 3:4], num[:, :, 4:5]
-        if cfg.compositing == "weighted":
-            return rad.sum(dim=1) / (wbar.sum(dim=1) + cfg.eps)
+            num = gather(vals.reshape(b * nl, 5, h, w), weights.reshape(b * nl, kk, h, w)).reshape(b, nl, 5, h, w)
+            rad, wbar, nbar = num[:, :, :3], num[:, :, 3:4], num[:, :, 4:5]
+        # Every filtered sum at a pixel u carries a factor exp(-shift(u)) that differs between
+        # neighbouring pixels; only ratios of sums filtered with one kernel are free of it. So no
+        # eps may be added to a denominator (an eps of 1e-6 against sums scaled by exp(-30)
+        # blacked out every pixel near a peaked kernel, issue 8 bug 2); a sum of exactly 0 means
+        # nothing landed, and its numerator is then 0 too.
+        if weighted:
+            return _ratio(rad.sum(dim=1), wbar.sum(dim=1))
         out = torch.zeros_like(rad[:, 0])
         transmit = torch.ones_like(wbar[:, 0])
         for j in range(nl):
-            n = nbar[:, j] + cfg.eps
-            out = out + transmit * rad[:, j] / n
-            transmit = transmit * (1 - wbar[:, j] / n)
+            out = out + transmit * _ratio(rad[:, j], nbar[:, j])
+            # wbar_j <= nbar_j (w_j <= n_j before filtering), so the factor stays in [0, 1].
+            transmit = transmit * (1 - _ratio(wbar[:, j], nbar[:, j]))
         return out
 
     def forward(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
