@@ -81,7 +81,10 @@ class FCStack(nn.Module):
                 _init_conv(m)
 
     def _act(self, x: torch.Tensor, is_last: bool) -> torch.Tensor:
-        return F.leaky_relu(x, LEAK) if (not is_last or self.last_activation) else x
+        # In place: every activation follows a 1x1 convolution, whose output autograd does not
+        # keep, and leaky ReLU's backward (slope > 0) needs only its result. Saves one
+        # (N, width, H, W) tensor per layer, the largest tensors of the per-sample networks.
+        return F.leaky_relu(x, LEAK, inplace=True) if (not is_last or self.last_activation) else x
 
     def forward(self, x: torch.Tensor, context: torch.Tensor | None = None) -> torch.Tensor:
         """``x`` (..., C_in, H, W), ``context`` (B, C_ctx, H, W) -> (..., widths[-1], H, W)."""
@@ -94,10 +97,10 @@ class FCStack(nn.Module):
             if context is None:
                 raise ValueError("FCStack was built with context channels but got no context")
             ctx = self.first_ctx(context)  # (B, W0, H, W)
-            # Broadcast the per-pixel projection over all middle (sample) dims.
+            # Broadcast the per-pixel projection over all middle (sample) dims, in place (y is a
+            # fresh convolution output) so no second (N, W0, H, W) tensor is made.
             b = ctx.shape[0]
-            y = y.reshape(b, -1, *y.shape[-3:]) + ctx.unsqueeze(1)
-            y = y.reshape(-1, *y.shape[-3:])
+            y.view(b, -1, *y.shape[-3:]).add_(ctx.unsqueeze(1))
         n = len(self.rest)
         y = self._act(y, n == 0)
         for i, layer in enumerate(self.rest):
@@ -127,7 +130,8 @@ class _ConvBlock(nn.Sequential):
         for w in widths:
             conv = nn.Conv2d(c, w, 3, padding=1)
             _init_conv(conv)
-            layers += [conv, nn.LeakyReLU(LEAK)]
+            # In place: the activation's input is a convolution output nobody else keeps.
+            layers += [conv, nn.LeakyReLU(LEAK, inplace=True)]
             c = w
         super().__init__(*layers)
         self.out_channels = c
@@ -147,6 +151,9 @@ class UNet(nn.Module):
         encoder: widths of the convs of each encoder level, finest first.
         bottleneck: widths of the convs at the coarsest resolution.
         decoder: widths of the convs of each decoder level, coarsest first (same count as encoder).
+        convs_per_level: if given, every level (encoder, bottleneck, decoder) runs exactly this
+            many convolutions: a level's widths are padded with its last width, or cut. None (the
+            default) runs as many as widths are given. SBMC's authors use 3 per level.
     """
 
     def __init__(
@@ -156,8 +163,22 @@ class UNet(nn.Module):
         encoder: Sequence[Sequence[int]],
         bottleneck: Sequence[int],
         decoder: Sequence[Sequence[int]],
+        *,
+        convs_per_level: int | None = None,
     ) -> None:
         super().__init__()
+        if convs_per_level is not None:
+            if convs_per_level < 1:
+                raise ValueError(f"convs_per_level must be >= 1, got {convs_per_level}")
+            n = convs_per_level
+
+            def fit(ws: Sequence[int]) -> tuple[int, ...]:
+                ws = tuple(ws)
+                return (ws + (ws[-1],) * n)[:n] if ws else ws
+
+            encoder = [fit(e) for e in encoder]
+            decoder = [fit(d) for d in decoder]
+            bottleneck = fit(bottleneck)
         if len(encoder) != len(decoder):
             raise ValueError("UNet needs as many decoder levels as encoder levels")
         if any(len(e) == 0 for e in encoder) or any(len(d) == 0 for d in decoder) or not bottleneck:

@@ -28,10 +28,10 @@ from torch import nn
 
 from mcdenoise.data.channels import SCENE_FEATURES, num_components
 from mcdenoise.models.blocks import FCStack, UNet, signed_log1p
-from mcdenoise.ops.kernels import per_destination_exp, per_pixel_exp
 from mcdenoise.models.registry import Denoiser, register_model
-from mcdenoise.ops.gather import gather
-from mcdenoise.ops.splat import SplatAccumulator, normalize_splat, splat
+from mcdenoise.ops.gather import gather, gather_rows
+from mcdenoise.ops.kernels import destination_max, per_destination_exp, per_pixel_exp
+from mcdenoise.ops.splat import SplatAccumulator, normalize_splat, splat, splat_into_
 
 __all__ = ["SBMCConfig", "SBMC", "SBMC_CHANNELS"]
 
@@ -80,18 +80,24 @@ class SBMCConfig:
     """Conv widths at the U-Net's coarsest level (Fig. 6)."""
     unet_decoder: tuple[tuple[int, ...], ...] = ((256, 256), (128, 128))
     """Conv widths of each U-Net decoder level, coarsest first (Fig. 6)."""
+    unet_convs_per_level: int | None = None
+    """Convolutions per U-Net level (None: as many as the widths above list). The paper's text
+    does not say (Fig. 6 is lost in our copy); the authors' code uses 3 (``num_convs=3``), so the
+    ``paper`` preset sets 3."""
     kernel_size: int = 21
     """Side of the splat/gather kernel (Sec. 3.1: 21)."""
     eps: float = 1e-8
     """Added to the per-pixel weight sum before dividing (pixels no kernel reaches become 0)."""
     kernel_budget_mb: int = 1024
-    """Splat variants: when all samples' kernels would exceed this many MB, they are generated and
-    splatted a chunk of samples at a time (two passes: per-pixel max, then splat). Same result;
-    bounds the kernel memory, not that of the embeddings."""
+    """Bound on the memory of the per-sample kernels (and of the per-sample FC temporaries) that
+    exist at once. Without gradients (inference) the per-sample networks and the kernels run one
+    band of rows at a time, sized to this budget (splat: two passes, per-destination max then
+    splat). With gradients (training) the splat variants generate kernels a chunk of samples at a
+    time once all samples' kernels would exceed it. Same result either way."""
 
 
 def _paper(**kw: object) -> SBMCConfig:
-    return SBMCConfig(**kw)  # type: ignore[arg-type]
+    return SBMCConfig(unet_convs_per_level=3, **kw)  # type: ignore[arg-type]
 
 
 def _small(**kw: object) -> SBMCConfig:
@@ -132,7 +138,9 @@ class SBMC(Denoiser):
         hidden = [cfg.fc_width] * (cfg.fc_layers - 1)
         self.embed0 = FCStack(n_in, hidden + [d])
         self.unets = nn.ModuleList(
-            UNet(d, d, cfg.unet_encoder, cfg.unet_bottleneck, cfg.unet_decoder) for _ in range(cfg.steps)
+            UNet(d, d, cfg.unet_encoder, cfg.unet_bottleneck, cfg.unet_decoder,
+                 convs_per_level=cfg.unet_convs_per_level)
+            for _ in range(cfg.steps)
         )
         self.embeds = nn.ModuleList(FCStack(d, hidden + [d], context_channels=d) for _ in range(cfg.steps))
         k2 = cfg.kernel_size**2
@@ -190,21 +198,75 @@ class SBMC(Denoiser):
         """Eq. 1 with kernels generated ``chunk`` samples at a time (same result as all at once)."""
         k = self.config.kernel_size
         s = e.shape[1]
-        src_max = None
-        with torch.no_grad():  # pass 1: per-pixel max over all samples' logits (a constant shift)
+        plane = None
+        with torch.no_grad():  # pass 1: max logit landing on each pixel, over all samples
             for s0 in range(0, s, chunk):
-                m = self.kernel(e[:, s0 : s0 + chunk], ctx).amax(dim=(1, 2)).unsqueeze(1)
-                src_max = m if src_max is None else torch.maximum(src_max, m)
+                plane = destination_max(self.kernel(e[:, s0 : s0 + chunk], ctx), k, plane=plane)
         acc = SplatAccumulator()
         for s0 in range(0, s, chunk):
             logits = self.kernel(e[:, s0 : s0 + chunk], ctx)
-            acc.add(radiance[:, s0 : s0 + chunk], per_destination_exp(logits, k, src_max))
+            acc.add(radiance[:, s0 : s0 + chunk], per_destination_exp(logits, k, plane, inplace=True))
         return acc.normalized(self.config.eps)
+
+    def _band_rows(self, b: int, s: int, w: int, itemsize: int) -> int:
+        """Rows per band so one band's largest per-sample tensor fits ``kernel_budget_mb``."""
+        cfg = self.config
+        widest = max(cfg.kernel_size**2, cfg.fc_width, cfg.embed_width)
+        per_row = b * s * widest * w * itemsize
+        return max(1, (cfg.kernel_budget_mb << 20) // per_row)
+
+    @torch.no_grad()
+    def _forward_banded(self, f: torch.Tensor, radiance: torch.Tensor) -> torch.Tensor:
+        """Inference: Algorithm 1 with every per-sample network run one band of rows at a time.
+
+        The per-sample networks are 1x1 convolutions, so a band's output depends on that band's
+        input only: the embeddings are updated in place band by band (one copy of E exists), and
+        kernels exist for one band at a time. Only the U-Nets see the whole (per-pixel) image.
+        """
+        cfg = self.config
+        k, r = cfg.kernel_size, cfg.kernel_size // 2
+        b, s, _, h, w = f.shape
+        d = cfg.embed_width
+        rows = self._band_rows(b, s, w, f.element_size())
+        bands = [(y0, min(h, y0 + rows)) for y0 in range(0, h, rows)]
+        e = f.new_empty((b, s, d, h, w))
+        for y0, y1 in bands:
+            e[..., y0:y1, :] = self.embed0(f[..., y0:y1, :])
+        del f
+        ctx = e.new_zeros(0)
+        for unet, fc in zip(self.unets, self.embeds):
+            ctx = unet(e.mean(dim=1))
+            for y0, y1 in bands:
+                e[..., y0:y1, :] = fc(e[..., y0:y1, :], ctx[..., y0:y1, :])
+        radiance = radiance.to(e.dtype)
+        if cfg.splat:
+            plane = e.new_full((b, h + 2 * r, w + 2 * r), float("-inf"))
+            for y0, y1 in bands:  # pass 1: max logit landing on each pixel
+                destination_max(self.kernel(e[..., y0:y1, :], ctx[..., y0:y1, :]), k, plane=plane, row0=y0)
+            acc = e.new_zeros((b, 4, h + 2 * r, w + 2 * r))
+            for y0, y1 in bands:  # pass 2: the same logits again, exponentiated and splatted
+                logits = self.kernel(e[..., y0:y1, :], ctx[..., y0:y1, :])
+                weights = per_destination_exp(logits, k, plane, row0=y0, inplace=True)
+                splat_into_(radiance[..., y0:y1, :], weights, acc, row0=y0)
+            num, wsum = acc[:, :3, r : r + h, r : r + w], acc[:, 3:, r : r + h, r : r + w]
+            return normalize_splat(num, wsum, cfg.eps)
+        # Gather (Fig. 5a): sample index s is its own 1-spp image; a ones channel gives the weight
+        # that fell inside the image.
+        img = torch.cat([radiance, torch.ones_like(radiance[:, :, :1])], dim=2).reshape(b * s, 4, h, w)
+        out = e.new_zeros((b, 4, h, w))
+        for y0, y1 in bands:
+            logits = self.kernel(e[..., y0:y1, :], ctx[..., y0:y1, :])
+            weights = per_pixel_exp(logits, row0=y0, height=h, inplace=True)
+            got = gather_rows(img, weights.reshape(b * s, k * k, y1 - y0, w), y0)
+            out[..., y0:y1, :] = got.reshape(b, s, 4, y1 - y0, w).sum(dim=1)
+        return normalize_splat(out[:, :3], out[:, 3:], cfg.eps)
 
     def forward(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
         """Denoise: per-sample buffers -> ``(B, 3, H, W)`` linear radiance."""
         cfg = self.config
         f, radiance = self.features(batch)
+        if not torch.is_grad_enabled():
+            return self._forward_banded(f, radiance)
         e, ctx = self.embed(f)
         radiance = radiance.to(e.dtype)
         k = cfg.kernel_size
@@ -215,12 +277,11 @@ class SBMC(Denoiser):
             return self._splat_chunked(e, ctx, radiance, chunk)
         logits = self.kernel(e, ctx)
         if cfg.splat:
-            num, wsum = splat(radiance, per_destination_exp(logits, k))
+            num, wsum = splat(radiance, per_destination_exp(logits, k, inplace=True))
         else:
             # Each sample index is its own 1-spp image gathered with its own kernels (Fig. 5a); a
             # ones channel gives the weight that fell inside the image for the normalisation.
-            b, s, _, h, w = radiance.shape
-            weights = per_pixel_exp(logits)
+            weights = per_pixel_exp(logits, inplace=True)
             img = torch.cat([radiance, torch.ones_like(radiance[:, :, :1])], dim=2)
             out = gather(img.reshape(b * s, 4, h, w), weights.reshape(b * s, k * k, h, w))
             out = out.reshape(b, s, 4, h, w).sum(dim=1)

@@ -20,7 +20,7 @@ from torch import Tensor, nn
 from mcdenoise.ops._common import check_same, check_tensor, kernel_size_from, resolve_impl
 from mcdenoise.ops._shift import GatherFn
 
-__all__ = ["gather", "gather_reference", "gather_fast", "Gather"]
+__all__ = ["gather", "gather_reference", "gather_fast", "gather_rows", "Gather"]
 
 _IMG = "(B, C, H, W)"
 _W = "(B, K*K, H, W)"
@@ -56,6 +56,33 @@ def gather_fast(image: Tensor, weights: Tensor) -> Tensor:
     """Shift-and-accumulate gather with an adjoint backward; same contract as :func:`gather`."""
     k = _check(image, weights, "gather")
     return GatherFn.apply(image, weights, k)
+
+
+def gather_rows(image: Tensor, weights: Tensor, row0: int) -> Tensor:
+    """Gather for a band of output rows only: image (B, C, H, W) whole, weights (B, K*K, h, W)
+    for output rows ``row0 .. row0 + h - 1`` -> (B, C, h, W), equal to those rows of
+    ``gather(image, full_weights)`` (zero outside the image). Reads only image rows
+    ``row0 - r .. row0 + h - 1 + r``, so a model can build kernels one row band at a time.
+    Plain PyTorch ops (differentiable through autograd, but meant for inference).
+    """
+    check_tensor(image, "image", 4, _IMG, "gather_rows")
+    check_tensor(weights, "weights", 4, _W, "gather_rows")
+    k = kernel_size_from(weights.shape[1], "weights", _W, "gather_rows")
+    r = k // 2
+    b, c, hh, w = image.shape
+    h = weights.shape[2]
+    if weights.shape[0] != b or weights.shape[3] != w or row0 < 0 or row0 + h > hh:
+        raise ValueError(f"gather_rows: weights {tuple(weights.shape)} for rows {row0}.. do not fit image {tuple(image.shape)}")
+    lo, hi = row0 - r, row0 + h + r
+    rows = image[:, :, max(lo, 0) : min(hi, hh)]
+    # Zero rows stand in for the image outside its top and bottom, zero columns for the sides.
+    xp = F.pad(rows, (r, r, max(0, -lo), max(0, hi - hh)))
+    out = image.new_zeros((b, c, h, w))
+    for i in range(k):
+        for j in range(k):
+            t = i * k + j
+            out.addcmul_(xp[:, :, i : i + h, j : j + w], weights[:, t : t + 1])
+    return out
 
 
 def gather(image: Tensor, weights: Tensor, *, impl: str = "auto") -> Tensor:

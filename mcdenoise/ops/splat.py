@@ -33,6 +33,7 @@ __all__ = [
     "Splat",
     "SplatAccumulator",
     "default_chunk",
+    "splat_into_",
 ]
 
 _V = "(B, S, C, H, W)"
@@ -59,6 +60,36 @@ def default_chunk(values: Tensor) -> int:
     """Samples per backward step of the fast path (all of them up to a ~64 MB float32 block)."""
     b, s, c, h, w = values.shape
     return max(1, min(s, _CHUNK_BUDGET_ELEMS // max(1, b * c * h * w)))
+
+
+def splat_into_(values: Tensor, weights: Tensor, acc: Tensor, row0: int = 0) -> Tensor:
+    """Add the splat of a band of source rows into a padded accumulator, in place (inference only).
+
+    values (B, S, C, h, W), weights (B, S, K*K, h, W) for source rows ``row0 .. row0 + h - 1``;
+    acc (B, C + 1, H + 2r, W + 2r): numerator channels then the weight sum, padded by ``r = K // 2``
+    on every side so that contributions of a band to the rows above and below it (and to outside
+    the image, cropped by the caller as ``acc[..., r:r+H, r:r+W]``) land somewhere. Lets a model
+    generate and splat kernels one row band at a time, so only one band's kernels exist at once.
+    No autograd: raises if any input requires a gradient (use :func:`splat` for training).
+    """
+    k = _check(values, weights, "splat_into_")
+    if torch.is_grad_enabled() and (values.requires_grad or weights.requires_grad):
+        raise RuntimeError("splat_into_ is inference-only; use splat() where gradients are needed")
+    b, s, c, h, w = values.shape
+    r = k // 2
+    if acc.dim() != 4 or acc.shape[0] != b or acc.shape[1] != c + 1 or acc.shape[-1] != w + 2 * r:
+        raise ValueError(f"splat_into_: acc must be (B, C+1, H+2r, W+2r) with B={b}, C+1={c + 1}, W+2r={w + 2 * r}")
+    if row0 < 0 or row0 + h + 2 * r > acc.shape[2]:
+        raise ValueError(f"splat_into_: rows {row0}..{row0 + h} do not fit an accumulator of {acc.shape[2]} padded rows")
+    band = acc[:, :, row0 : row0 + h + 2 * r]
+    for si in range(s):
+        v = torch.cat([values[:, si], torch.ones_like(values[:, si, :1])], dim=1)  # (B, C+1, h, W)
+        ws = weights[:, si]
+        for i in range(k):
+            for j in range(k):
+                t = i * k + j
+                band[:, :, i : i + h, j : j + w].addcmul_(v, ws[:, t : t + 1])
+    return acc
 
 
 def splat_reference(values: Tensor, weights: Tensor) -> tuple[Tensor, Tensor]:
