@@ -1,0 +1,389 @@
+"""The training loop shared by every registered model: ``mcdenoise train`` and :func:`train`.
+
+One process or several (``torchrun``): each rank builds the same model from ``cfg.seed``, reads its
+rows of every global batch (:mod:`mcdenoise.train.data`), and DistributedDataParallel averages the
+gradients, so N ranks with ``batch / N`` rows each compute the same update as one process with
+``batch`` rows (up to float summation order). Rank 0 alone writes the run folder.
+
+Exact resume: batch ``t`` is a pure function of ``(seed, t)``, the schedule a pure function of
+``t``, and a checkpoint holds the weights, Adam's state and the RNG state after step ``t``; on CPU
+a resumed run therefore reproduces the losses of an uninterrupted one bit for bit.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import shutil
+import sys
+import time
+from collections.abc import Callable, Iterator
+from contextlib import nullcontext
+from dataclasses import asdict, dataclass, is_dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+import torch.distributed as dist
+from torch import nn
+
+from mcdenoise.data.dataset import Dataset
+from mcdenoise.errors import McDenoiseError
+from mcdenoise.io.atomic import atomic_file
+from mcdenoise.models.registry import Denoiser, build_model
+from mcdenoise.train.checkpoint import latest_checkpoint, load_checkpoint, prune_checkpoints, save_checkpoint, \
+    state_dict_for_safetensors
+from mcdenoise.train.config import ConfigError, TrainConfig, check_resume_config, config_document, manifest_hash, read_config
+from mcdenoise.train.data import DataConfig, training_batches, validation_batches
+from mcdenoise.train.losses import get_loss
+from mcdenoise.train.optim import StepOutcome, apply_gradients, build_optimizer, lr_at
+from mcdenoise.train.runlog import VAL_METRICS, MetricsLog, plot_loss
+
+__all__ = ["train", "TrainResult", "Trainer", "data_config", "CONFIG_FILE", "WEIGHTS_FILE"]
+
+CONFIG_FILE = "config.json"
+WEIGHTS_FILE = "model.safetensors"
+RESULT_FILE = "result.json"
+
+
+@dataclass
+class TrainResult:
+    """What :func:`train` returns (rank 0's view).
+
+    Attributes:
+        run_dir: the run folder; step: steps completed; skipped: updates dropped as non-finite;
+        wall_s: seconds spent in this call; val: the last validation metrics (may be empty).
+    """
+
+    run_dir: Path
+    step: int
+    skipped: int
+    wall_s: float
+    val: dict[str, float]
+
+
+# ----------------------------------------------------------------------------- distributed set-up
+
+
+def _dist_env() -> tuple[int, int, int]:
+    """(rank, world_size, local_rank) from torchrun's environment; (0, 1, 0) without it."""
+    return int(os.environ.get("RANK", 0)), int(os.environ.get("WORLD_SIZE", 1)), int(os.environ.get("LOCAL_RANK", 0))
+
+
+def _device(cfg: TrainConfig, local_rank: int) -> torch.device:
+    want = cfg.device
+    if want == "auto":
+        want = "cuda" if torch.cuda.is_available() else "cpu"
+    if want == "cuda":
+        if not torch.cuda.is_available():
+            raise ConfigError("--device cuda: no CUDA device is available")
+        return torch.device("cuda", local_rank)
+    if want != "cpu":
+        raise ConfigError(f"device must be cpu, cuda or auto, got {cfg.device!r}")
+    return torch.device("cpu")
+
+
+def _init_distributed(device: torch.device, world: int) -> bool:
+    """Join torchrun's process group (nccl on CUDA, gloo on CPU); False when single-process."""
+    if world <= 1:
+        return False
+    if not dist.is_initialized():
+        dist.init_process_group("nccl" if device.type == "cuda" else "gloo")
+    return True
+
+
+# ----------------------------------------------------------------------------- model step
+
+
+class _Objective(nn.Module):
+    """Wraps a model so that DistributedDataParallel sees whichever forward the phase needs.
+
+    Calling ``model.forward_branches`` directly on a DDP-wrapped model would skip DDP's gradient
+    hooks; routing both phases through this module's ``forward`` keeps them synchronised.
+    """
+
+    def __init__(self, model: Denoiser) -> None:
+        super().__init__()
+        self.model = model
+
+    def forward(self, batch: dict[str, torch.Tensor], branches: bool) -> dict[str, torch.Tensor]:
+        if branches:
+            return self.model.forward_branches(batch)  # type: ignore[operator]
+        return {"image": self.model(batch)}
+
+
+def has_branches(model: Denoiser) -> bool:
+    """True for models trained per branch first (KPCN/DPCN): they expose both halves of Eq. 4."""
+    return hasattr(model, "forward_branches") and hasattr(model, "branch_targets")
+
+
+def data_config(cfg: TrainConfig) -> DataConfig:
+    """The data side's settings for this run."""
+    return DataConfig(crop=cfg.crop, batch=cfg.batch, spp_range=cfg.spp_range, sampling=cfg.sampling, augment=cfg.augment,
+                      workers=cfg.workers, target=cfg.target, seed=cfg.seed)
+
+
+class Trainer:
+    """Model, optimizer and the guarded step; no files (the caller owns the run folder).
+
+    Args:
+        model: a registered model on ``device``.
+        cfg: a resolved :class:`TrainConfig`.
+        distributed: wrap in DistributedDataParallel (the process group must exist).
+    """
+
+    def __init__(self, model: Denoiser, cfg: TrainConfig, device: torch.device, distributed: bool = False) -> None:
+        self.model, self.cfg, self.device = model, cfg, device
+        self.loss = get_loss(cfg.loss or "l1")
+        self.objective: nn.Module = _Objective(model)
+        if distributed:
+            self.objective = nn.parallel.DistributedDataParallel(
+                self.objective, device_ids=[device.index] if device.type == "cuda" else None
+            )
+        self.optimizer = build_optimizer(model, cfg)
+        self.params = [p for p in model.parameters() if p.requires_grad]
+        self.branch_steps = int(round((cfg.branch_fraction or 0.0) * cfg.steps)) if has_branches(model) else 0
+        self.distributed = distributed
+
+    def phase(self, step: int) -> str:
+        return "branches" if step < self.branch_steps else "image"
+
+    def compute_loss(self, batch: dict[str, torch.Tensor], step: int) -> torch.Tensor:
+        """The scalar loss of ``batch`` for the phase of ``step`` (graph kept for backward)."""
+        branches = self.phase(step) == "branches"
+        amp = self.cfg.amp == "bf16" and self.device.type == "cuda"
+        ctx = torch.autocast("cuda", dtype=torch.bfloat16) if amp else nullcontext()
+        with ctx:
+            out = self.objective(batch, branches)
+        if not branches:
+            return self.loss(out["image"].float(), batch["target"])
+        ref = {"radiance": batch["target"]}
+        ref.update({k.split(":", 1)[1]: v for k, v in batch.items() if k.startswith("target:")})
+        targets = self.model.branch_targets(ref, batch)  # type: ignore[operator]
+        # Sum, not mean: each branch gets the gradient it would get if trained alone (Sec. 4.3).
+        return sum(self.loss(out[n].float(), targets[n]) for n in sorted(targets))  # type: ignore[return-value]
+
+    def step(self, batch: dict[str, torch.Tensor], step: int) -> StepOutcome:
+        """One optimizer step on ``batch`` at schedule position ``step`` (0-based)."""
+        for g in self.optimizer.param_groups:
+            g["lr"] = lr_at(step, self.cfg)
+        self.model.train()
+        loss = self.compute_loss(batch, step)
+        loss.backward()
+        value = loss.detach()
+        if self.distributed:
+            value = value.clone()
+            dist.all_reduce(value)
+            value /= dist.get_world_size()
+        return apply_gradients(self.params, self.optimizer, float(value), self.cfg.clip_grad)
+
+    @torch.no_grad()
+    def validate(self, batches: list[dict[str, torch.Tensor]]) -> dict[str, float]:
+        """Mean of :data:`mcdenoise.train.runlog.VAL_METRICS` over whole validation images."""
+        from mcdenoise.eval.metrics import compute_metrics
+
+        if not batches:
+            return {}
+        self.model.eval()
+        sums = {m: 0.0 for m in VAL_METRICS}
+        for b in batches:
+            b = {k: v.to(self.device) for k, v in b.items()}
+            pred = self.model(b).float()
+            for k, v in compute_metrics(pred, b["target"], list(VAL_METRICS)).items():
+                sums[k] += v
+        self.model.train()
+        return {k: v / len(batches) for k, v in sums.items()}
+
+    def state(self, step: int, skipped: int) -> dict[str, Any]:
+        st: dict[str, Any] = {"format": 1, "optimizer": self.optimizer.state_dict(), "rng_cpu": torch.get_rng_state(),
+                              "skipped": skipped}
+        if self.device.type == "cuda":
+            st["rng_cuda"] = torch.cuda.get_rng_state(self.device)
+        return st
+
+    def load_state(self, st: dict[str, Any]) -> int:
+        """Restore optimizer and RNG state; returns the skipped-update count so far."""
+        self.optimizer.load_state_dict(st["optimizer"])
+        torch.set_rng_state(st["rng_cpu"])
+        if self.device.type == "cuda" and "rng_cuda" in st:
+            torch.cuda.set_rng_state(st["rng_cuda"], self.device)
+        return int(st.get("skipped", 0))
+
+
+# ----------------------------------------------------------------------------- run folder
+
+
+def _model_config_json(model: Denoiser) -> dict[str, Any]:
+    c = model.config
+    d = asdict(c) if is_dataclass(c) else dict(vars(c))
+    return json.loads(json.dumps(d, default=list))  # tuples -> lists, as they read back
+
+
+def prepare_run_dir(out: Path, doc: dict[str, Any], *, resume: bool, force: bool) -> tuple[int, bool]:
+    """Create or check the run folder (rank 0 only). Returns ``(start_step, fresh)``.
+
+    Refuses, with one line: an existing run without ``--resume``/``--force``; a resume whose
+    config differs; a non-empty folder that is not a run (even with ``--force``: it is not ours
+    to delete).
+    """
+    cfg_path = out / CONFIG_FILE
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"{out}: exists and is not a folder")
+    is_run = cfg_path.is_file()
+    if out.is_dir() and not is_run and any(out.iterdir()):
+        raise ConfigError(f"{out}: not empty and not a run folder (no {CONFIG_FILE}); choose another --out")
+    if is_run and resume:
+        check_resume_config(read_config(cfg_path), doc, cfg_path)
+        ck = latest_checkpoint(out)
+        return (ck.step if ck else 0), False
+    if is_run and not force:
+        raise ConfigError(f"{out}: a run already exists; pass --resume to continue it or --force to start over")
+    if is_run:
+        shutil.rmtree(out)
+    out.mkdir(parents=True, exist_ok=True)
+    with atomic_file(cfg_path) as tmp:
+        tmp.write_text(json.dumps(doc, indent=1) + "\n")
+    return 0, True
+
+
+def _broadcast_start(start: int, ok: bool, distributed: bool) -> int:
+    """Share rank 0's start step (or its refusal) with every rank."""
+    if not distributed:
+        return start
+    t = torch.tensor([start, int(ok)], dtype=torch.int64)
+    dist.broadcast(t, 0)
+    if not t[1]:
+        raise ConfigError("rank 0 refused the run folder (see its error)")
+    return int(t[0])
+
+
+def _progress(total: int, initial: int, enabled: bool) -> Any:
+    from tqdm import tqdm
+
+    return tqdm(total=total, initial=initial, disable=not enabled, unit="step", dynamic_ncols=True, file=sys.stderr)
+
+
+def train(
+    cfg: TrainConfig,
+    out: str | os.PathLike,
+    *,
+    resume: bool = False,
+    force: bool = False,
+    on_step: Callable[[int, StepOutcome], None] | None = None,
+) -> TrainResult:
+    """Train ``cfg.model`` on ``cfg.data`` into run folder ``out`` (see module docstring).
+
+    Args:
+        cfg: settings; ``None`` fields are resolved from the model's defaults.
+        resume: continue from the newest checkpoint of ``out`` (a missing folder starts fresh).
+        force: replace an existing run folder.
+        on_step: called after every step with ``(steps_done, outcome)`` (tests, notebooks).
+    """
+    t_start = time.perf_counter()
+    rank, world, local_rank = _dist_env()
+    device = _device(cfg, local_rank)
+    distributed = _init_distributed(device, world)
+    try:
+        return _train(cfg, Path(out), resume, force, on_step, rank, world, device, distributed, t_start)
+    finally:
+        if distributed and dist.is_initialized():
+            dist.destroy_process_group()
+
+
+def _train(cfg: TrainConfig, out: Path, resume: bool, force: bool, on_step: Callable[[int, StepOutcome], None] | None,
+           rank: int, world: int, device: torch.device, distributed: bool, t_start: float) -> TrainResult:
+    data_dir = Path(cfg.data)
+    if not (data_dir / "manifest.json").is_file():
+        raise ConfigError(f"{data_dir}: not a dataset folder (no manifest.json); make one with `mcdenoise dataset`")
+    if cfg.batch % world:
+        raise ConfigError(f"batch {cfg.batch} is not divisible by the {world} processes")
+    torch.manual_seed(cfg.seed)
+    try:
+        model = build_model(cfg.model, cfg.preset)
+    except KeyError as e:
+        raise ConfigError(str(e.args[0])) from None
+    cfg = cfg.resolved(model.input_kind)
+    if not Dataset(data_dir).images("train"):
+        raise ConfigError(f"{data_dir}: no images in the train split")
+    doc = config_document(cfg, model_config=_model_config_json(model), manifest_sha256=manifest_hash(data_dir), world_size=world)
+
+    start, ok = 0, True
+    if rank == 0:
+        try:
+            start, _ = prepare_run_dir(out, doc, resume=resume, force=force)
+        except McDenoiseError:
+            _broadcast_start(0, False, distributed)
+            raise
+    start = _broadcast_start(start, ok, distributed)
+
+    model.to(device)
+    trainer = Trainer(model, cfg, device, distributed)
+    skipped = 0
+    if start > 0:
+        ck = latest_checkpoint(out)
+        assert ck is not None and ck.step == start
+        skipped = trainer.load_state(load_checkpoint(ck, model, device))
+    if start >= cfg.steps:
+        if rank == 0:
+            print(f"{out}: already trained for {start} steps", file=sys.stderr)
+        return TrainResult(out, start, skipped, time.perf_counter() - t_start, {})
+
+    log = MetricsLog(out, start) if rank == 0 else None
+    val_batches = validation_batches(data_dir, model, data_config(cfg), max_images=cfg.val_images) if rank == 0 else []
+    batches: Iterator[dict[str, torch.Tensor]] = training_batches(
+        data_dir, model, data_config(cfg), start_step=start, rank=rank, world_size=world, device=device
+    )
+    bar = _progress(cfg.steps, start, cfg.progress and rank == 0)
+    val: dict[str, float] = {}
+    ema: float | None = None
+    t_prev = time.perf_counter()
+    try:
+        for t in range(start, cfg.steps):
+            batch = next(batches)
+            outcome = trainer.step(batch, t)
+            skipped += outcome.skipped
+            done = t + 1
+            now = time.perf_counter()
+            dt, t_prev = now - t_prev, now
+            if on_step is not None:
+                on_step(done, outcome)
+            if rank != 0:
+                continue
+            assert log is not None
+            row: dict[str, Any] = {"step": done, "phase": trainer.phase(t), "loss": outcome.loss, "lr": lr_at(t, cfg),
+                                   "grad_norm": outcome.grad_norm, "skipped": skipped, "crops_per_s": cfg.batch / dt,
+                                   "s_per_step": dt, "spp": float(batch["spp"].float().mean()) if "spp" in batch else None,
+                                   "wall_s": now - t_start}
+            if outcome.skipped:
+                print(f"step {done}: non-finite loss or gradient, update skipped ({skipped} so far)", file=sys.stderr)
+            last = done == cfg.steps
+            if (cfg.val_every and done % cfg.val_every == 0) or last:
+                val = trainer.validate(val_batches)
+                row.update({f"val_{k}": v for k, v in val.items()})
+            log.write(row)
+            if done % cfg.checkpoint_every == 0 or last:
+                save_checkpoint(out, done, model, trainer.state(done, skipped))
+                prune_checkpoints(out, cfg.keep_every)
+            if (cfg.val_every and done % cfg.val_every == 0) or last:
+                plot_loss(log.path, out / "loss.png")
+            if math.isfinite(outcome.loss):
+                ema = outcome.loss if ema is None else 0.9 * ema + 0.1 * outcome.loss
+            bar.set_postfix(loss=f"{ema:.4g}" if ema is not None else "nan", crops_s=f"{cfg.batch / dt:.1f}")
+            bar.update(1)
+    finally:
+        bar.close()
+        if log is not None:
+            log.close()
+    wall = time.perf_counter() - t_start
+    if rank == 0:
+        from safetensors.torch import save_file
+
+        with atomic_file(out / WEIGHTS_FILE) as tmp:
+            save_file(state_dict_for_safetensors(model), str(tmp),
+                      metadata={"model": cfg.model, "preset": cfg.preset, "step": str(cfg.steps)})
+        summary = {"model": cfg.model, "preset": cfg.preset, "steps": cfg.steps, "skipped": skipped, "device": str(device),
+                   "world_size": world, "wall_s_this_call": wall, "val": val}
+        with atomic_file(out / RESULT_FILE) as tmp:
+            tmp.write_text(json.dumps(summary, indent=1) + "\n")
+    return TrainResult(out, cfg.steps, skipped, wall, val)

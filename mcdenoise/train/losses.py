@@ -1,0 +1,122 @@
+"""Training losses, registered by name, each marked as safe or not for noisy targets.
+
+Every loss takes ``pred`` and ``target`` of the same shape (``(B, 3, H, W)`` linear HDR, or a
+KPCN branch in its transformed domain) and returns a scalar: the mean over every element. Means
+over equal-sized rows make a loss on ``B`` rows equal the average of its losses on two halves, which
+is what lets ``world_size`` ranks with ``B / world_size`` rows each train the same model as one
+process with ``B`` rows.
+
+A loss is *unbiased for noisy targets* (Noise2Noise) when the expected gradient against a noisy
+target ``t = y + n`` with ``E[n] = 0`` equals the gradient against the clean ``y``: true when the
+loss is quadratic in ``t`` with a weight that does not depend on ``t``. L2 qualifies; relMSE
+qualifies only with its denominator taken from the (detached) prediction instead of the target.
+L1, SMAPE and the tonemapped/log losses are non-linear in ``t`` and converge to something else
+(L1 to the median, for instance), so training with ``target="noisy"`` refuses them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import torch
+
+__all__ = ["Loss", "LOSSES", "get_loss", "register_loss", "RELMSE_EPS", "SMAPE_EPS"]
+
+#: Denominator offset of relMSE (as in :func:`mcdenoise.eval.metrics.relmse`).
+RELMSE_EPS = 1e-2
+#: Denominator offset of SMAPE (Munkberg & Hasselgren 2020; Fan et al. 2021 Eq. 6).
+SMAPE_EPS = 1e-2
+
+
+@dataclass(frozen=True)
+class Loss:
+    """One registered loss.
+
+    Attributes:
+        name: registry key (CLI ``--loss``).
+        fn: ``(pred, target) -> scalar`` mean over every element.
+        unbiased_for_noisy_target: True when training against an independent noisy render gives,
+            in expectation, the same gradient as the clean reference (see module docstring).
+        description: one line for ``--help`` and docs.
+    """
+
+    name: str
+    fn: Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
+    unbiased_for_noisy_target: bool
+    description: str
+
+    def __call__(self, pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+        if pred.shape != target.shape:
+            raise ValueError(f"loss {self.name}: prediction {tuple(pred.shape)} vs target {tuple(target.shape)}")
+        return self.fn(pred, target)
+
+
+LOSSES: dict[str, Loss] = {}
+
+
+def register_loss(name: str, *, unbiased: bool, description: str) -> Callable[[Callable], Callable]:
+    """Decorator adding ``fn(pred, target) -> scalar`` to :data:`LOSSES` under ``name``."""
+
+    def deco(fn: Callable[[torch.Tensor, torch.Tensor], torch.Tensor]) -> Callable:
+        if name in LOSSES:
+            raise ValueError(f"loss {name!r} registered twice")
+        LOSSES[name] = Loss(name, fn, unbiased, description)
+        return fn
+
+    return deco
+
+
+def get_loss(name: str) -> Loss:
+    """The registered loss ``name``; a KeyError lists the known names."""
+    try:
+        return LOSSES[name]
+    except KeyError:
+        raise KeyError(f"unknown loss {name!r}; known: {', '.join(sorted(LOSSES))}") from None
+
+
+def _soft_tonemap(x: torch.Tensor) -> torch.Tensor:
+    # x / (1 + |x|): SBMC's x / (1 + x) for x >= 0, odd-extended so that a negative prediction
+    # (possible for direct-prediction models) cannot hit the pole at x = -1.
+    return x / (1.0 + x.abs())
+
+
+def _signed_log1p(x: torch.Tensor) -> torch.Tensor:
+    # log(1 + x) for x >= 0, odd-extended for the same reason as _soft_tonemap.
+    return torch.sign(x) * torch.log1p(x.abs())
+
+
+@register_loss("l1", unbiased=False, description="mean |pred - target| (KPCN/DPCN, per branch then on the image)")
+def l1_loss(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    return (pred - target).abs().mean()
+
+
+@register_loss("l2", unbiased=True, description="mean (pred - target)^2; unbiased for noisy targets")
+def l2_loss(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    return ((pred - target) ** 2).mean()
+
+
+@register_loss(
+    "relmse",
+    unbiased=True,
+    description="mean (pred - target)^2 / (pred.detach()^2 + 0.01); the denominator never sees the target, "
+    "so it stays unbiased for noisy targets (Noise2Noise)",
+)
+def relmse_loss(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    weight = 1.0 / (pred.detach() ** 2 + RELMSE_EPS)
+    return ((pred - target) ** 2 * weight).mean()
+
+
+@register_loss("smape", unbiased=False, description="mean |pred - target| / (|pred| + |target| + 0.01) (layer, WSKP)")
+def smape_loss(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    return ((pred - target).abs() / (pred.abs() + target.abs() + SMAPE_EPS)).mean()
+
+
+@register_loss("tonemapped_l2", unbiased=False, description="L2 between x / (1 + x) of both (SBMC and its ablations)")
+def tonemapped_l2_loss(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    return ((_soft_tonemap(pred) - _soft_tonemap(target)) ** 2).mean()
+
+
+@register_loss("log_l1", unbiased=False, description="L1 between log(1 + x) of both")
+def log_l1_loss(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    return (_signed_log1p(pred) - _signed_log1p(target)).abs().mean()
