@@ -53,7 +53,9 @@ def add_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--spp", type=int, default=8, help="samples per pixel of the per-sample input (default 8)")
     p.add_argument("--ref-spp", type=int, default=4096, help="samples per pixel of the reference; 0 = none (default 4096)")
     p.add_argument("--size", default=None,
-                   help="WIDTHxHEIGHT or N (default: the scene file's film size; 256x256 for built-in scenes)")
+                   help="WIDTHxHEIGHT or N: the film size the scene is loaded with, so the camera is the one "
+                        "Mitsuba builds for it; refused for a film with a crop window (default: the scene "
+                        "file's film, or its crop window; 256x256 for built-in scenes)")
     p.add_argument("--seed", type=int, default=0, help="sampler seed (the reference derives its own)")
     p.add_argument("--max-depth", type=int, default=6, help="Mitsuba max_depth of input and reference (default 6)")
     p.add_argument("-D", dest="defines", action="append", default=[], metavar="NAME=VALUE",
@@ -85,7 +87,8 @@ def run(args: argparse.Namespace) -> int:
     extra = builtin_motion(args.scene) if args.scene in builtins else {}
     t0 = time.perf_counter()
     scene = load_scene(args.scene, defines=defines, width=size[0] if size else None, height=size[1] if size else None)
-    film = scene.sensors()[0].film().size()
+    # The rendered image is the film's crop window (the whole film when it has none).
+    film = scene.sensors()[0].film().crop_size()
     w, h = int(film[0]), int(film[1])
     settings = RenderSettings(spp=args.spp, ref_spp=args.ref_spp, width=w, height=h, seed=args.seed,
                               max_depth=args.max_depth, channels=channels, **extra)

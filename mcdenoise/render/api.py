@@ -172,20 +172,82 @@ def _first_line(e: BaseException) -> str:
     return msg[:400]
 
 
-def _set_film_size(scene: Any, width: int | None, height: int | None, where: str) -> None:
-    mi = mitsuba()
-    sensor = scene.sensors()[0]
-    size = sensor.film().size()
-    w = int(size[0]) if width is None else int(width)
-    h = int(size[1]) if height is None else int(height)
-    if not (1 <= w <= MAX_SIZE and 1 <= h <= MAX_SIZE):
-        raise SceneError(f"{where}: image size {w}x{h} is out of range [1, {MAX_SIZE}]")
-    if (w, h) != (int(size[0]), int(size[1])):
-        params = mi.traverse(sensor)
-        params["film.size"] = mi.ScalarVector2u(w, h)
-        params["film.crop_size"] = mi.ScalarVector2u(w, h)
-        params["film.crop_offset"] = mi.ScalarPoint2u(0, 0)
-        params.update()
+#: Mitsuba 3 sensor plugins, to find the sensor entry of a scene dict.
+_SENSOR_TYPES = frozenset({"perspective", "thinlens", "orthographic", "radiancemeter", "irradiancemeter", "distant", "batch"})
+#: Film parameters of a crop window (Mitsuba 3 names, and Mitsuba 0.6 names that its upgrade renames).
+_CROP_PARAMS = frozenset({"crop_offset_x", "crop_offset_y", "crop_width", "crop_height",
+                          "cropoffsetx", "cropoffsety", "cropwidth", "cropheight"})
+
+
+def _crop_refusal(where: str, names: Collection[str]) -> SceneError:
+    return SceneError(
+        f"{where}: the film has a crop window ({', '.join(sorted(names))}); a new image size would change "
+        "which part of the image it selects: remove the crop window from the scene, or render at the "
+        "film's own size (no --size / width / height)"
+    )
+
+
+def _xml_with_film_size(path: Path, width: int | None, height: int | None) -> str:
+    """The scene file's text with the first sensor's film set to ``width`` x ``height``.
+
+    Mitsuba derives a camera's projection (its x field of view from ``fov_axis`` or
+    ``focal_length``, the thin lens, the orthographic extent) from the film size while it builds
+    the sensor; resizing the film of a loaded scene keeps the old projection. So the size is
+    written into the scene description before Mitsuba instantiates anything.
+    """
+    import xml.etree.ElementTree as ET
+
+    where = str(path)
+    try:
+        root = ET.parse(path).getroot()
+    except ET.ParseError as e:
+        raise SceneError(f"{where}: not a valid XML file ({e})") from None
+    # Document order, as Mitsuba lists the sensors: scene.sensors()[0] is the first <sensor>.
+    sensor = next(root.iter("sensor"), None)
+    if sensor is None:
+        raise SceneError(
+            f"{where}: no <sensor> in this file (one in an <include>d file cannot be resized): "
+            "set the film size in the file or leave out --size / width / height"
+        )
+    film = sensor.find("film")
+    if film is None:
+        # Mitsuba's default film when a sensor names none.
+        film = ET.SubElement(sensor, "film", {"type": "hdrfilm"})
+    crop = {c.get("name", "") for c in film if c.get("name", "").lower() in _CROP_PARAMS}
+    if crop:
+        raise _crop_refusal(where, crop)
+    for name, value in (("width", width), ("height", height)):
+        if value is None:
+            continue
+        for child in [c for c in film if c.get("name") == name]:
+            film.remove(child)
+        ET.SubElement(film, "integer", {"name": name, "value": str(int(value))})
+    return ET.tostring(root, encoding="unicode")
+
+
+def _dict_with_film_size(scene: dict, width: int | None, height: int | None) -> dict:
+    """A shallow copy of a scene dict whose first sensor's film is ``width`` x ``height`` (see
+    :func:`_xml_with_film_size` for why the size goes in before loading)."""
+    key = next((k for k, v in scene.items() if isinstance(v, dict) and v.get("type") in _SENSOR_TYPES), None)
+    if key is None:
+        raise SceneError("<scene dict>: no sensor entry (type perspective, thinlens, orthographic, ...) to resize")
+    sensor = dict(scene[key])
+    film = dict(sensor.get("film", {"type": "hdrfilm"}))
+    crop = {k for k in film if k.lower() in _CROP_PARAMS}
+    if crop:
+        raise _crop_refusal("<scene dict>", crop)
+    if width is not None:
+        film["width"] = int(width)
+    if height is not None:
+        film["height"] = int(height)
+    sensor["film"] = film
+    return {**scene, key: sensor}
+
+
+def _film_size(scene: Any) -> tuple[int, int]:
+    """(width, height) of the image the scene's first sensor renders: its film's crop window."""
+    size = scene.sensors()[0].film().crop_size()
+    return int(size[0]), int(size[1])
 
 
 def load_scene(
@@ -198,17 +260,21 @@ def load_scene(
     """Load a Mitsuba 3 scene: an XML file (0.6 files are upgraded), a built-in name, or a dict.
 
     ``defines`` set ``$name`` defaults of a file like Mitsuba's ``-D``. ``width``/``height``
-    override the film size. Raises SceneError on any problem (missing file, unknown plugin, no
-    sensor, absurd size).
+    set the film size before the scene is instantiated, so the camera is exactly the one Mitsuba
+    builds for a film of that size (field of view, lens, orthographic extent); a film with a crop
+    window is refused then. Without them the film's own size (its crop window, if any) is kept.
+    Raises SceneError on any problem (missing file, unknown plugin, no sensor, absurd size).
     """
     mi = mitsuba()
     for n, v in (("width", width), ("height", height)):
         if v is not None and not 1 <= int(v) <= MAX_SIZE:
             raise SceneError(f"{scene if not isinstance(scene, dict) else '<dict>'}: {n}={v} is out of range [1, {MAX_SIZE}]")
+    resize = width is not None or height is not None
     if isinstance(scene, dict):
         where = "<scene dict>"
+        d = _dict_with_film_size(scene, width, height) if resize else scene
         try:
-            loaded = mi.load_dict(scene)
+            loaded = mi.load_dict(d)
         except Exception as e:  # noqa: BLE001 - Mitsuba raises RuntimeError/TypeError with its text
             raise SceneError(f"{where}: {_first_line(e)}") from None
     elif isinstance(scene, str) and scene in BUILTIN_SCENES:
@@ -228,12 +294,30 @@ def load_scene(
             raise SceneError(f"{where}: is a folder, not a scene file")
         kwargs = {str(k): str(v) for k, v in (defines or {}).items()}
         try:
-            loaded = mi.load_file(str(path), **kwargs)
+            if not resize:
+                loaded = mi.load_file(str(path), **kwargs)
+            else:
+                text = _xml_with_film_size(path, width, height)
+                # load_file resolves relative paths (meshes, textures, includes) against the
+                # file's folder; a string has no folder, so lend it that one while it loads.
+                saved = mi.FileResolver(mi.file_resolver())
+                resolver = mi.FileResolver(saved)
+                resolver.prepend(str(path.resolve().parent))
+                mi.set_file_resolver(resolver)
+                try:
+                    loaded = mi.load_string(text, **kwargs)
+                finally:
+                    mi.set_file_resolver(saved)
+        except SceneError:
+            raise
         except Exception as e:  # noqa: BLE001
             raise SceneError(f"{where}: {_first_line(e)}") from None
     if loaded is None or len(loaded.sensors()) == 0:
         raise SceneError(f"{where}: the scene has no sensor (camera)")
-    _set_film_size(loaded, width, height, where)
+    got = _film_size(loaded)
+    want = (got[0] if width is None else int(width), got[1] if height is None else int(height))
+    if got != want:
+        raise SceneError(f"{where}: asked for a {want[0]}x{want[1]} film but the first sensor has {got[0]}x{got[1]}")
     return loaded
 
 
@@ -334,7 +418,13 @@ class _Prepared:
 def _prepare(scene: Any, settings: RenderSettings, camera_to_world: np.ndarray | None) -> _Prepared:
     mi = mitsuba()
     settings.check()
-    _set_film_size(scene, settings.width, settings.height, "scene")
+    film = _film_size(scene)
+    if film != (settings.width, settings.height):
+        # Resizing a loaded film keeps the projection built for the old size (see load_scene).
+        raise SceneError(
+            f"render settings: {settings.width}x{settings.height} but the scene's film is {film[0]}x{film[1]}: "
+            "load the scene at the size to render (load_scene(..., width=, height=))"
+        )
     integrator = mi.load_dict({"type": INTEGRATOR_NAME, "max_depth": int(settings.max_depth), "rr_depth": int(settings.rr_depth)})
     integrator.roughness_table = _roughness_table(scene)
     sensor = scene.sensors()[0]
