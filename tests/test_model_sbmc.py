@@ -174,3 +174,114 @@ def test_gradcheck_normalised_splat_through_shifted_exp() -> None:
         return normalize_splat(num, wsum, 0.0)
 
     assert torch.autograd.gradcheck(f, (logits, values), eps=1e-6, atol=1e-8, rtol=1e-6)
+
+
+# --- Issue 8: banded inference, paper sizes, and tests that catch mutations of the model ---------
+
+#: Paper-preset parameter counts, as literals: a count computed from the same code would follow
+#: any change to it. 3 U-Nets of 3 convs per level (authors' code), 3 FC stacks of 128, 441 taps.
+PAPER_PARAMS = {"sbmc": 34_908_345, "sbmc_gather": 34_908_345, "pixel_splat": 34_913_081, "pixel_gather": 34_913_081}
+SMALL_PARAMS = {"sbmc": 88_889, "sbmc_gather": 88_889, "pixel_splat": 89_481, "pixel_gather": 89_481}
+
+
+@pytest.mark.parametrize("name", ALL)
+def test_paper_and_small_parameter_counts_are_pinned(name: str) -> None:
+    """Catches: any change of architecture (a dropped U-Net conv, a kernel head built without its
+    context input, a missing step) that the paper-size test above would not see."""
+    count = lambda m: sum(p.numel() for p in m.parameters())  # noqa: E731
+    assert count(build_model(name, "paper")) == PAPER_PARAMS[name]
+    assert count(build_model(name, "small")) == SMALL_PARAMS[name]
+
+
+def test_paper_unet_has_three_convs_per_level() -> None:
+    """Item 7: the authors' code runs 3 convolutions per U-Net level (ours had 2)."""
+    unet = build_model("sbmc", "paper").unets[0]
+    blocks = list(unet.enc) + [unet.bottleneck] + list(unet.dec)
+    convs = [sum(isinstance(m, torch.nn.Conv2d) for m in blk) for blk in blocks]
+    assert convs == [3] * 5
+    assert [blk.out_channels for blk in blocks] == [128, 256, 512, 256, 128]
+
+
+@pytest.mark.parametrize("name", ALL)
+def test_training_path_equals_banded_inference(name: str) -> None:
+    """Inference runs the per-sample networks and kernels one band of rows at a time; training runs
+    them whole or a chunk of samples at a time. Catches: any of the three paths diverging (a wrong
+    band offset, a shift that differs per band or chunk, a step or input dropped in one path)."""
+    torch.manual_seed(0)
+    model = build_model(name, "small").double().eval()
+    batch = synthetic_batch(model, spp=3, height=11, width=9, dtype=torch.float64)
+    with torch.enable_grad():
+        whole = model(batch).detach()
+        model.config.kernel_budget_mb = 0  # training path: one sample per chunk (splat variants)
+        chunked = model(batch).detach()
+    with torch.no_grad():
+        banded = model(batch)  # budget 0: one row per band
+        model.config.kernel_budget_mb = 1024
+        one_band = model(batch)
+    for got in (chunked, banded, one_band):
+        assert rel_diff(got, whole) <= 1e-12
+
+
+@pytest.mark.parametrize("name", ALL)
+def test_every_parameter_receives_a_gradient(name: str) -> None:
+    """Catches: a U-Net step that never runs (e.g. only the first of the steps), a kernel head whose
+    context input is ignored or zeroed, any sub-network cut off from the output."""
+    torch.manual_seed(0)
+    model = build_model(name, "small").double().train()
+    batch = synthetic_batch(model, spp=3, height=10, width=8, dtype=torch.float64)
+    target = torch.rand(1, 3, 10, 8, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    ((model(batch) - target).square().mean()).backward()
+    dead = [n for n, p in model.named_parameters() if p.grad is None or float(p.grad.abs().sum()) == 0.0]
+    assert not dead, f"{name}: no gradient reaches {dead}"
+
+
+def _perturbed(batch: dict[str, torch.Tensor], key: str) -> dict[str, torch.Tensor]:
+    g = torch.Generator().manual_seed(7)
+    out = dict(batch)
+    out[key] = batch[key] + 0.5 * torch.rand(batch[key].shape, generator=g, dtype=batch[key].dtype) + 0.1
+    return out
+
+
+@pytest.mark.parametrize("name", ALL)
+def test_output_depends_on_every_input_group_and_every_step(name: str) -> None:
+    """Inference path (no gradients). Catches: scene features zeroed or dropped, any feature channel
+    ignored, and a U-Net step skipped in the banded inference loop (perturbing that step's U-Net
+    must change the output)."""
+    torch.manual_seed(0)
+    model = build_model(name, "small").eval()
+    batch = synthetic_batch(model, spp=3, height=10, width=8)
+    with torch.no_grad():
+        y = model(batch)
+        for key in list(model.config.channels) + ["scene_features"]:
+            if key == "radiance":
+                continue  # also what is filtered; its network input is tested below
+            assert rel_diff(model(_perturbed(batch, key)), y) > 1e-6, f"{name}: output ignores {key}"
+        for i, unet in enumerate(model.unets):
+            saved = [p.clone() for p in unet.parameters()]
+            for p in unet.parameters():
+                p.add_(0.1 * torch.randn_like(p))
+            changed = rel_diff(model(batch), y)
+            for p, s in zip(unet.parameters(), saved):
+                p.copy_(s)
+            assert changed > 1e-6, f"{name}: U-Net step {i} does not affect the output"
+
+
+@pytest.mark.parametrize("name", ALL)
+def test_radiance_reaches_the_network_log_compressed(name: str) -> None:
+    """Appendix A: the kernel predictor consumes log radiance (the splat acts on linear radiance).
+    Catches: radiance (or its diffuse/specular split) fed to the network without compression."""
+    model = build_model(name, "small")
+    batch = synthetic_batch(model, spp=3, height=5, width=4)
+    for key in ("radiance", "diffuse", "specular"):
+        batch[key] = batch[key] * 1e4
+    f, lin = model.features(batch)
+    col = 0
+    for key in model.config.channels:
+        n = batch[key].shape[2]
+        if key in ("radiance", "diffuse", "specular"):
+            want = torch.log1p(batch[key])
+            want = want if model.config.per_sample else want.mean(dim=1, keepdim=True)
+            torch.testing.assert_close(f[:, :, col : col + n], want)
+        col += n
+    assert float(f.abs().max()) < 30.0  # log(1e4 * x) stays small; linear 1e4 would not
+    assert rel_diff(lin.sum(1) if model.config.per_sample else lin[:, 0] * 3, batch["radiance"].sum(1)) <= 1e-6
