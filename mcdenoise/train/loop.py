@@ -145,6 +145,7 @@ class Trainer:
         self.params = [p for p in model.parameters() if p.requires_grad]
         self.branch_steps = int(round((cfg.branch_fraction or 0.0) * cfg.steps)) if has_branches(model) else 0
         self.distributed = distributed
+        self._buffers_to_guard = list(model.buffers())
 
     def phase(self, step: int) -> str:
         return "branches" if step < self.branch_steps else "image"
@@ -169,6 +170,9 @@ class Trainer:
         for g in self.optimizer.param_groups:
             g["lr"] = lr_at(step, self.cfg)
         self.model.train()
+        # BatchNorm running statistics update in the forward pass: a non-finite batch would poison
+        # them even though the optimizer step is skipped, so keep a copy to restore (they are small).
+        saved = [b.detach().clone() for b in self._buffers_to_guard]
         loss = self.compute_loss(batch, step)
         loss.backward()
         value = loss.detach()
@@ -176,7 +180,12 @@ class Trainer:
             value = value.clone()
             dist.all_reduce(value)
             value /= dist.get_world_size()
-        return apply_gradients(self.params, self.optimizer, float(value), self.cfg.clip_grad)
+        out = apply_gradients(self.params, self.optimizer, float(value), self.cfg.clip_grad)
+        if out.skipped:
+            with torch.no_grad():
+                for b, s in zip(self._buffers_to_guard, saved):
+                    b.copy_(s)
+        return out
 
     @torch.no_grad()
     def validate(self, batches: list[dict[str, torch.Tensor]]) -> dict[str, float]:

@@ -1,0 +1,182 @@
+"""Training engine parts without a full run: losses, schedule, the non-finite guard, checkpoints,
+metrics.csv recovery after a torn write, loss.png."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import pytest
+import torch
+
+from mcdenoise.models.registry import build_model, synthetic_batch
+from mcdenoise.train.checkpoint import latest_checkpoint, load_checkpoint, prune_checkpoints, save_checkpoint
+from mcdenoise.train.config import ConfigError, TrainConfig, check_resume_config
+from mcdenoise.train.losses import LOSSES, get_loss
+from mcdenoise.train.loop import Trainer
+from mcdenoise.train.optim import lr_at
+from mcdenoise.train.runlog import COLUMNS, MetricsLog, plot_loss, read_metrics
+
+
+def _pair(seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
+    g = torch.Generator().manual_seed(seed)
+    pred = torch.rand((2, 3, 5, 5), generator=g, dtype=torch.float64) * 3 - 0.5
+    target = torch.rand((2, 3, 5, 5), generator=g, dtype=torch.float64) * 3
+    return pred, target
+
+
+@pytest.mark.parametrize("name", sorted(LOSSES))
+def test_loss_zero_at_target_positive_elsewhere_finite_gradient(name: str) -> None:
+    """Catches a loss with an offset, a sign error, or a NaN gradient for negative predictions
+    (x / (1 + x) and log(1 + x) have poles at x = -1)."""
+    loss = get_loss(name)
+    pred, target = _pair()
+    assert float(loss(target.clone(), target)) == 0.0
+    pred = pred.clone().requires_grad_(True)
+    bad = pred.detach().clone()
+    bad[0, 0, 0, 0] = -1.0  # at the pole of the naive tonemap
+    bad.requires_grad_(True)
+    for p in (pred, bad):
+        value = loss(p, target)
+        assert value.ndim == 0 and float(value.detach()) > 0
+        (g,) = torch.autograd.grad(value, p)
+        assert torch.isfinite(g).all()
+    with pytest.raises(ValueError, match="prediction"):
+        loss(pred[:, :2], target)
+
+
+@pytest.mark.parametrize("name", sorted(LOSSES))
+def test_noisy_target_unbiasedness_flag_is_honest(name: str) -> None:
+    """Catches a loss marked unbiased for noisy targets whose expected gradient against
+    ``y +/- n`` differs from the gradient against ``y`` (relMSE with the target in the
+    denominator, for one), and a biased mark on a loss that would be fine."""
+    loss = get_loss(name)
+    pred, clean = _pair(1)
+    noise = torch.rand_like(clean) * clean  # keeps targets >= 0, large enough to cross pred
+    grads = []
+    for t in (clean, clean + noise, clean - noise):
+        p = pred.clone().requires_grad_(True)
+        (g,) = torch.autograd.grad(loss(p, t), p)
+        grads.append(g)
+    expected = (grads[1] + grads[2]) / 2
+    same = torch.allclose(expected, grads[0], rtol=1e-9, atol=1e-12)
+    assert same == loss.unbiased_for_noisy_target, (name, float((expected - grads[0]).abs().max()))
+
+
+def test_noisy_target_refuses_biased_loss_in_one_line() -> None:
+    """Catches `--target noisy` silently training towards a biased optimum."""
+    cfg = TrainConfig(model="wskp", data="x", target="noisy", loss="smape")
+    with pytest.raises(ConfigError) as err:
+        cfg.resolved("pixels")
+    assert "biased" in str(err.value) and "\n" not in str(err.value)
+    with pytest.raises(ConfigError, match="biased"):
+        TrainConfig(model="wskp", data="x", target="noisy").resolved("pixels")  # smape is wskp's default
+    ok = TrainConfig(model="kpcn", data="x", target="noisy", loss="relmse").resolved("pixels")
+    assert ok.branch_fraction == 0.0  # the log-domain branch phase is biased too
+    assert TrainConfig(model="kpcn", data="x").resolved("pixels").branch_fraction == 0.8
+
+
+def test_defaults_follow_the_papers() -> None:
+    """Catches a model family trained with another paper's loss."""
+    want = {"kpcn": "l1", "dpcn": "l1", "sbmc": "tonemapped_l2", "pixel_splat": "tonemapped_l2", "layer": "smape",
+            "layer_optimized": "smape", "wskp": "smape"}
+    for model, loss in want.items():
+        assert TrainConfig(model=model, data="x").resolved("pixels").loss == loss
+    assert TrainConfig(model="sbmc", data="x").resolved("samples").spp_range == (2, 8)
+
+
+def test_schedule_warmup_then_cosine() -> None:
+    """Catches an off-by-one that starts at lr 0 (a wasted step) or a decay that misses its floor."""
+    cfg = TrainConfig(model="wskp", data="x", steps=100, lr=1e-3, warmup=0.1, min_lr_fraction=0.05).resolved("pixels")
+    lrs = [lr_at(t, cfg) for t in range(100)]
+    assert lrs[0] == pytest.approx(1e-4) and lrs[9] == pytest.approx(1e-3)
+    assert all(b > a for a, b in zip(lrs[:10], lrs[1:10]))
+    assert all(b <= a for a, b in zip(lrs[10:], lrs[11:]))
+    assert lrs[-1] == pytest.approx(5e-5)
+    step = TrainConfig(model="wskp", data="x", steps=100, lr=1.0, warmup=0, schedule="step").resolved("pixels")
+    assert [lr_at(t, step) for t in (0, 49, 50, 74, 75, 99)] == pytest.approx([1, 1, 0.1, 0.1, 0.01, 0.01])
+
+
+def test_non_finite_loss_is_skipped_and_counted() -> None:
+    """Catches a NaN batch corrupting the weights, Adam's moments or WSKP's BatchNorm running
+    statistics (updated in the forward pass) instead of being dropped."""
+    torch.manual_seed(0)
+    model = build_model("wskp")
+    cfg = TrainConfig(model="wskp", data="x", steps=10, warmup=0).resolved("pixels")
+    tr = Trainer(model, cfg, torch.device("cpu"))
+    batch = synthetic_batch(model, batch=2, height=12, width=12)
+    batch["target"] = batch["radiance"] * 0.5
+    bad = dict(batch, radiance=batch["radiance"].clone())
+    bad["radiance"][0, 0, 3, 3] = float("nan")
+    before = {k: v.clone() for k, v in model.state_dict().items()}
+    out = tr.step(bad, 0)
+    assert out.skipped and not math.isfinite(out.loss)
+    assert all(torch.equal(before[k], v) for k, v in model.state_dict().items())
+    assert not tr.optimizer.state  # Adam never saw the bad gradient
+    ok = tr.step(batch, 1)
+    assert not ok.skipped and math.isfinite(ok.loss)
+    assert any(not torch.equal(before[k], v) for k, v in model.state_dict().items())
+
+
+def test_checkpoint_round_trip_weights_only(tmp_path: Path) -> None:
+    """Catches a checkpoint that needs unpickling, misses Adam's state, or whose pruning deletes
+    the newest or a kept-periodic folder."""
+    torch.manual_seed(0)
+    model = build_model("wskp")
+    cfg = TrainConfig(model="wskp", data="x", steps=10).resolved("pixels")
+    tr = Trainer(model, cfg, torch.device("cpu"))
+    batch = synthetic_batch(model, batch=2, height=12, width=12)
+    batch["target"] = batch["radiance"]
+    tr.step(batch, 0)
+    for step in (2, 4, 6):
+        save_checkpoint(tmp_path, step, model, tr.state(step, skipped=1))
+    (tmp_path / "checkpoints" / ".step_00000008.tmp-1-abcd").mkdir()  # a killed write
+    prune_checkpoints(tmp_path, keep_every=4)
+    names = sorted(p.name for p in (tmp_path / "checkpoints").iterdir())
+    assert names == ["step_00000004", "step_00000006"]
+    ck = latest_checkpoint(tmp_path)
+    assert ck is not None and ck.step == 6
+    torch.load(ck.path / "state.pt", weights_only=True)
+    torch.manual_seed(1)
+    other = build_model("wskp")
+    tr2 = Trainer(other, cfg, torch.device("cpu"))
+    st = load_checkpoint(ck, other)
+    assert tr2.load_state(st) == 1 and st["step"] == 6
+    for k, v in model.state_dict().items():
+        assert torch.equal(v, other.state_dict()[k])
+    a, b = tr.optimizer.state_dict()["state"], tr2.optimizer.state_dict()["state"]
+    assert a.keys() == b.keys() and all(torch.equal(a[i]["exp_avg"], b[i]["exp_avg"]) for i in a)
+
+
+def test_metrics_log_drops_rows_after_checkpoint_and_torn_line(tmp_path: Path) -> None:
+    """Catches a resumed run keeping rows from after its checkpoint (duplicated steps) or a torn
+    last line from the kill (a bogus row)."""
+    log = MetricsLog(tmp_path, 0, tensorboard=False)
+    for s in range(1, 6):
+        log.write({"step": s, "phase": "image", "loss": 1.0 / s, "lr": 1e-3})
+    log.close()
+    with open(tmp_path / "metrics.csv", "a") as f:
+        f.write("1")  # a torn "1x,..." row
+    assert [r["step"] for r in read_metrics(tmp_path / "metrics.csv")] == ["1", "2", "3", "4", "5"]
+    log = MetricsLog(tmp_path, 3, tensorboard=False)
+    log.write({"step": 4, "phase": "image", "loss": 0.5})
+    log.close()
+    rows = read_metrics(tmp_path / "metrics.csv")
+    assert [r["step"] for r in rows] == ["1", "2", "3", "4"] and rows[-1]["loss"] == "0.5"
+    assert (tmp_path / "metrics.csv").read_text().splitlines()[0] == ",".join(COLUMNS)
+    png = plot_loss(tmp_path / "metrics.csv", tmp_path / "loss.png")
+    assert png is not None and png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_resume_refuses_changed_settings() -> None:
+    """Catches a resume that silently continues with another learning rate or dataset."""
+    a = {"train": TrainConfig(model="kpcn", data="d", lr=1e-3).to_json(), "manifest_sha256": "x", "model_config": {}}
+    b = {"train": TrainConfig(model="kpcn", data="elsewhere", lr=1e-3, workers=7).to_json(), "manifest_sha256": "x",
+         "model_config": {}}
+    check_resume_config(a, b, Path("run/config.json"))  # data path and workers do not change the math
+    c = dict(b, train=TrainConfig(model="kpcn", data="d", lr=2e-3).to_json())
+    with pytest.raises(ConfigError) as err:
+        check_resume_config(a, c, Path("run/config.json"))
+    assert "lr" in str(err.value) and "\n" not in str(err.value)
+    with pytest.raises(ConfigError, match="manifest"):
+        check_resume_config(a, dict(b, manifest_sha256="y"), Path("run/config.json"))
