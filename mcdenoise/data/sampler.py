@@ -227,7 +227,7 @@ class CropSampler:
                     if base_name(n) in im.meta.channels]
             noisy = px.read_noisy(want)
             ref = px.read_reference(["radiance"]) if im.has_reference else None
-            sc = window_scores(importance_map(noisy, ref), self.crop)
+            sc = window_scores(importance_map(noisy, ref), self.crop).astype(np.float32)
             self._scores[im.path] = sc
         return sc
 

@@ -56,8 +56,9 @@ class DataConfig:
     """Importance sampling: accept a candidate window after this many rejections."""
     prefetch: int = 4
     """Batches each worker prepares ahead."""
-    max_cached: int = 64
-    """Images whose decoded EXRs each worker keeps in memory."""
+    max_cached: int = 16
+    """Images whose decoded EXRs each worker keeps in memory (about 7 MB per 128x128 image
+    with a reference; raise it for small datasets of small images, lower it for large images)."""
 
     def __post_init__(self) -> None:
         if self.sampling not in SAMPLINGS:

@@ -1,0 +1,143 @@
+"""Clean or noisy training targets at equal CPU time (issue 9 item 3).
+
+    python benchmarks/bench_noisy_targets.py WORK_DIR [--model kpcn] [--size 64] [--images A B C]
+        [--ref-spp 1024 128] [--steps 200] [--crop 24] [--batch 4] [--val 3]
+
+Three arms train the same model on the same procedural scenes (dataset seed 1, so arm X's first
+n scenes are arm Y's first n scenes) and are validated on the same separate val images (seed 100,
+8 spp input, 1024-spp references; not counted in any budget):
+
+* ``ref1024`` / ``ref128``: 8 spp input, reference.exr at that spp, ``--target reference``;
+* ``noisy``: 16 spp stored, no reference; each crop's input is 8 random samples and its target the
+  mean of the other 8 (``--target noisy``).
+
+Cost is CPU seconds (user + system, children included, from ``getrusage``), so a loaded machine
+changes the wall time but much less the accounting. The budget is what ``ref1024`` spends: its
+dataset render plus ``--steps`` training steps. Every other arm gets the same total; what its
+cheaper render saved buys more steps at ``ref1024``'s measured CPU seconds per step. All arms use
+the same loss (``relmse``, unbiased for noisy targets) and, for KPCN/DPCN, no per-branch phase
+(``log(1 + specular)`` of a noisy target would be biased).
+
+Pools are rendered with ``mcdenoise dataset`` into WORK_DIR and reused by later runs (their CPU
+cost is stored next to them in ``t_<pool>``). Prints one line per arm and writes ``results.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import os
+import resource
+import subprocess
+import sys
+from pathlib import Path
+
+from mcdenoise.data.dataset import Dataset, write_manifest
+
+BIN = [str(Path(sys.executable).parent / "mcdenoise")]
+
+
+def _child_cpu() -> float:
+    r = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return r.ru_utime + r.ru_stime
+
+
+def _run(cmd: list[str], log: Path) -> float:
+    """Run ``cmd`` to completion; returns its CPU seconds (it and its children)."""
+    before = _child_cpu()
+    with open(log, "w") as f:
+        subprocess.run(cmd, check=True, stdout=f, stderr=subprocess.STDOUT)
+    return _child_cpu() - before
+
+
+def render_pool(work: Path, name: str, *, count: int, spp: int, ref_spp: int, seed: int, split: str, size: int) -> float:
+    """Render (or reuse) pool ``name``; returns its CPU seconds."""
+    stamp = work / f"t_{name}"
+    if stamp.is_file() and (work / name / "manifest.json").is_file():
+        parts = stamp.read_text().split()  # "<name> cpu <user> <sys> wall <s>" (also GNU time's -f)
+        return float(parts[2]) + float(parts[3])
+    cpu = _run(BIN + ["dataset", "--out", str(work / name), "--count", str(count), "--spp", str(spp),
+                      "--ref-spp", str(ref_spp), "--seed", str(seed), "--split", split, "--size", str(size),
+                      "--no-progress"], work / f"log_{name}")
+    stamp.write_text(f"{name} cpu {cpu:.2f} 0 wall 0\n")
+    return cpu
+
+
+def arm_folder(work: Path, arm: str, pool: str, n: int) -> Path:
+    """``work/arm_<arm>``: the first ``n`` train images of ``pool`` plus the shared val images (links)."""
+    out = work / f"arm_{arm}"
+    out.mkdir(exist_ok=True)
+    entries = []
+    for src_name, split, limit in ((pool, "train", n), ("val", "val", None)):
+        src = Dataset(work / src_name)
+        for e in src.entries[:limit]:
+            link = out / f"{src_name}_{e['path'].replace('/', '_')}"
+            if not link.exists():
+                os.symlink((work / src_name / e["path"]).resolve(), link)
+            entries.append({"path": link.name, "scene": f"{src_name}:{e['scene']}", "split": split})
+    write_manifest(out, entries)
+    return out
+
+
+def train_arm(work: Path, arm: str, data: Path, a: argparse.Namespace, steps: int, target: str) -> tuple[float, dict[str, str]]:
+    run = work / f"run_{arm}"
+    cmd = BIN + ["train", "--model", a.model, "--data", str(data), "--out", str(run), "--steps", str(steps),
+                 "--crop", str(a.crop), "--batch", str(a.batch), "--loss", "relmse", "--target", target,
+                 "--workers", str(a.workers), "--val-every", "0", "--val-images", str(a.val), "--seed", str(a.seed),
+                 "--force", "--no-progress"]
+    if a.model in ("kpcn", "dpcn"):
+        cmd += ["--branch-fraction", "0"]
+    cpu = _run(cmd, work / f"log_run_{arm}")
+    with open(run / "metrics.csv") as f:
+        rows = [r for r in csv.DictReader(f) if r.get("val_relmse")]
+    return cpu, rows[-1]
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("work", type=Path)
+    p.add_argument("--model", default="kpcn")
+    p.add_argument("--size", type=int, default=64)
+    p.add_argument("--images", type=int, nargs=3, default=[4, 8, 16], metavar=("REF1024", "REF128", "NOISY"))
+    p.add_argument("--steps", type=int, default=200, help="training steps of the ref1024 arm (sets the budget)")
+    p.add_argument("--crop", type=int, default=24)
+    p.add_argument("--batch", type=int, default=4)
+    p.add_argument("--val", type=int, default=3, help="validation images (1024 spp references)")
+    p.add_argument("--workers", type=int, default=1)
+    p.add_argument("--seed", type=int, default=0)
+    a = p.parse_args()
+    a.work.mkdir(parents=True, exist_ok=True)
+    size = a.size
+    render_pool(a.work, "val", count=a.val, spp=8, ref_spp=1024, seed=100, split="0,1,0", size=size)
+    arms = [  # (arm, pool, images, stored spp, reference spp, target)
+        ("ref1024", "poolA", a.images[0], 8, 1024, "reference"),
+        ("ref128", "poolB", a.images[1], 8, 128, "reference"),
+        ("noisy", "poolC", a.images[2], 16, 0, "noisy"),
+    ]
+    render = {arm: render_pool(a.work, pool, count=n, spp=spp, ref_spp=ref, seed=1, split="1,0,0", size=size)
+              for arm, pool, n, spp, ref, _ in arms}
+    results = {}
+    cpu_per_step = None
+    budget = None
+    for arm, pool, n, _, _, target in arms:
+        data = arm_folder(a.work, arm, pool, n)
+        if cpu_per_step is None:
+            steps = a.steps
+        else:
+            steps = max(1, int((budget - render[arm]) / cpu_per_step))
+        cpu, last = train_arm(a.work, arm, data, a, steps, target)
+        if cpu_per_step is None:
+            cpu_per_step = cpu / steps
+            budget = render[arm] + cpu
+        results[arm] = {"images": n, "render_cpu_s": round(render[arm], 1), "steps": steps, "train_cpu_s": round(cpu, 1),
+                        "total_cpu_s": round(render[arm] + cpu, 1), "val_relmse": float(last["val_relmse"]),
+                        "val_psnr": float(last["val_psnr"])}
+        r = results[arm]
+        print(f"{arm:8s} images={n:3d} render={r['render_cpu_s']:7.1f}s steps={steps:5d} train={r['train_cpu_s']:7.1f}s "
+              f"total={r['total_cpu_s']:7.1f}s  val relMSE={r['val_relmse']:.4f}  PSNR={r['val_psnr']:.2f}", flush=True)
+    (a.work / "results.json").write_text(json.dumps(results, indent=1) + "\n")
+
+
+if __name__ == "__main__":
+    main()
