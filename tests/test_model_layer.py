@@ -227,3 +227,109 @@ def test_paper_sizes() -> None:
     assert model.input_features == 20  # 20 floats per sample, as in the paper
     assert isinstance(model.partitioner, FCStack) and model.partitioner.out_channels == 2
     assert model.kernel_gen.out_channels == 289
+
+
+# -- Tests that structural mutations must fail (issue 8 item 13) -------------------------------
+
+#: Parameter counts of the presets, pinned as literals: a count recomputed from the same code
+#: cannot notice a U-Net one level shallower, a missing skip concatenation or a narrower head.
+PAPER_COUNTS = {
+    ("layer", "paper"): 18_001_235,
+    ("layer_weighted", "paper"): 18_001_235,
+    ("layer_optimized", "paper"): 17_329_216,
+    ("layer_optimized", "paper_timed"): 1_024_976,
+    ("layer", "small"): 31_995,
+    ("layer_weighted", "small"): 31_995,
+    ("layer_optimized", "small"): 35_640,
+}
+
+
+@pytest.mark.parametrize("name,preset", sorted(PAPER_COUNTS))
+def test_parameter_counts_are_pinned(name: str, preset: str) -> None:
+    """Catches: the layer U-Net one level shallower (or deeper), skip channels dropped from the
+    decoder's input, any change of a width in a preset (Appendix B, Sec. 6, our ``paper_timed``)."""
+    model = build_model(name, preset)
+    assert sum(p.numel() for p in model.parameters()) == PAPER_COUNTS[(name, preset)]
+    if preset != "small":
+        assert model.unet.levels == 5  # Fig. 3 has five pooling levels (32x downsampling)
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_every_parameter_element_gets_a_gradient(name: str) -> None:
+    """Catches (each leaves some weights with an exactly zero or missing gradient): U-Net skip
+    connections zeroed (decoder weights reading the skip channels), a U-Net level skipped in the
+    forward pass (its blocks get no gradient), the kernel generator ignoring the layer embedding
+    (its first layer's weights), the partitioner ignoring the context (its context projection),
+    any head or level of the hierarchy that does not reach the output."""
+    torch.manual_seed(0)
+    model = build_model(name, "small")
+    batch = synthetic_batch(model, spp=3, height=16, width=16)
+    out = model(batch)
+    w = torch.rand(out.shape, generator=torch.Generator().manual_seed(1))
+    (out * w).sum().backward()
+    for pname, p in model.named_parameters():
+        assert p.grad is not None, f"{name}: {pname} receives no gradient"
+        assert torch.isfinite(p.grad).all(), f"{name}: {pname} has a non-finite gradient"
+        zero = int((p.grad == 0).sum())
+        assert zero == 0, f"{name}: {zero} of {p.numel()} elements of {pname} get an exactly zero gradient"
+
+
+def _groups(model) -> list[str]:
+    return list(model.config.channels) + ["scene_features"]
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_output_depends_on_every_input_group(name: str) -> None:
+    """Catches: an input channel group (radiance, specular, albedo, normal, depth, roughness,
+    lens, time, sub-pixel position, scene features for the circle of confusion) read but not used,
+    e.g. zeroed or dropped from the features."""
+    torch.manual_seed(0)
+    model = build_model(name, "small").eval()
+    batch = synthetic_batch(model, spp=2, height=8, width=8)
+    with torch.no_grad():
+        y = model(batch)
+        for group in _groups(model):
+            changed = dict(batch)
+            g = torch.Generator().manual_seed(7)
+            changed[group] = batch[group] + 0.5 * torch.rand(batch[group].shape, generator=g)
+            d = rel_diff(model(changed), y)
+            assert d > 1e-5, f"{name}: output does not depend on {group} (rel. change {d:.2g})"
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_hdr_radiance_is_log_compressed(name: str) -> None:
+    """Catches: radiance (or any HDR channel) fed to the networks without log compression. A
+    firefly of 1e5 must enter the sample reducer as log(1 + 1e5) ~ 11.5, not as 1e5 (Sec. 3)."""
+    model = build_model(name, "small")
+    batch = synthetic_batch(model, spp=2, height=6, width=6)
+    batch["radiance"][0, 0, :, 2, 3] = 1e5
+    batch["specular"][0, 1, :, 4, 1] = 1e5
+    f, rad = model.features(batch)
+    assert rad[0, 0, 0, 2, 3] == 1e5  # the radiance that is filtered stays linear
+    assert f.abs().max() <= torch.log1p(torch.tensor(1e5)) + 1e-4
+    assert torch.allclose(f[:, :, :3], torch.log1p(batch["radiance"]))
+
+
+def test_paper_timed_unet_fits_the_papers_timing() -> None:
+    """Catches: a ``paper_timed`` U-Net that no longer fits Table 3's 18.8 ms at 1920x1080 on an
+    RTX 2080 Ti, i.e. more than 136 kFLOP per pixel (15 TFLOP/s x 18.8 ms / 2.07 Mpixel; see
+    docs/models/layer.md), and the unverified ``paper`` U-Net being mistaken for one that fits."""
+
+    def unet_flop_per_pixel(model) -> float:
+        total = 0
+
+        def hook(mod: torch.nn.Conv2d, inp, out) -> None:
+            nonlocal total
+            total += 2 * out.numel() * mod.in_channels * mod.kernel_size[0] * mod.kernel_size[1] // mod.groups
+
+        hooks = [m.register_forward_hook(hook) for m in model.unet.modules() if isinstance(m, torch.nn.Conv2d)]
+        with torch.no_grad():
+            model.unet(torch.zeros(1, model.config.embed_width, 64, 64))
+        for h in hooks:
+            h.remove()
+        return total / (64 * 64)
+
+    budget = 15e12 * 18.8e-3 / (1920 * 1080)
+    timed = unet_flop_per_pixel(build_model("layer_optimized", "paper_timed"))
+    assert 0.5 * budget < timed <= budget, timed
+    assert unet_flop_per_pixel(build_model("layer_optimized", "paper")) > 4 * budget
