@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import pytest
 import torch
 
@@ -30,27 +32,65 @@ def test_features_follow_paper_preprocessing() -> None:
     assert set(f) == {"diffuse", "specular"}
     d, s = f["diffuse"], f["specular"]
     assert d.shape == s.shape == (2, FEATURES_PER_BRANCH, 9, 11)
-    irr = b["diffuse"] / (b["albedo"] + EPS)
+    irr = b["diffuse"] / (b["albedo_diffuse"] + EPS)
     torch.testing.assert_close(d[:, :3], irr)
     torch.testing.assert_close(s[:, :3], torch.log1p(b["specular"]))
     # Gradients of the colour: forward differences, 0 in the last column/row.
     torch.testing.assert_close(d[:, 3:6, :, :-1], irr[..., 1:] - irr[..., :-1])
     assert (d[:, 3:6, :, -1] == 0).all()
     torch.testing.assert_close(d[:, 6:9, :-1], irr[..., 1:, :] - irr[..., :-1, :])
-    # Depth gradient uses depth scaled to [0, 1] per image: x-gradient channel is 9 + 2*3 + 3 + ... order:
+    # Channel order:
     # [color(3), gx(3), gy(3), n_gx(3), n_gy(3), a_gx(3), a_gy(3), d_gx(1), d_gy(1), var(1), fvar(3)]
-    dmax = b["depth"].amax(dim=(1, 2, 3), keepdim=True)
-    dscaled = b["depth"] / dmax
-    torch.testing.assert_close(d[:, 21:22, :, :-1], dscaled[..., 1:] - dscaled[..., :-1])
+    # Depth is log(1 + depth / depth_scale), depth_scale = 1 by default.
+    dfeat = torch.log1p(b["depth_diffuse"])
+    torch.testing.assert_close(d[:, 21:22, :, :-1], dfeat[..., 1:] - dfeat[..., :-1])
+    torch.testing.assert_close(d[:, 22:23, :-1], dfeat[..., 1:, :] - dfeat[..., :-1, :])
     # Eq. 5: relative variance for diffuse, 1/(1+x)^2 for log specular, reduced by luminance.
-    dvar = (b["diffuse_variance"] / (b["albedo"] + EPS) ** 2 * LUM).sum(1, keepdim=True)
+    dvar = (b["diffuse_variance"] / (b["albedo_diffuse"] + EPS) ** 2 * LUM).sum(1, keepdim=True)
     svar = (b["specular_variance"] / (1 + b["specular"]) ** 2 * LUM).sum(1, keepdim=True)
     torch.testing.assert_close(d[:, 23:24], dvar)
     torch.testing.assert_close(s[:, 23:24], svar)
-    torch.testing.assert_close(d[:, 26:27], b["depth_variance"] / dmax**2)
+    torch.testing.assert_close(d[:, 26:27], b["depth_diffuse_variance"] / (1 + b["depth_diffuse"]) ** 2)
     # Feature channels are shared by both branches.
     torch.testing.assert_close(d[:, 9:23], s[:, 9:23])
     torch.testing.assert_close(d[:, 24:], s[:, 24:])
+
+
+@pytest.mark.parametrize("name", ["kpcn", "dpcn", "kpcn_single"])
+def test_features_are_those_of_the_first_diffuse_hit(name: str) -> None:
+    """Issue 8 item 5: the paper saves albedo, normal and depth at the first diffuse intersection
+    (glass and mirrors show what lies behind them); the first-hit buffers must not be read."""
+    model = build_model(name, "small")
+    req = set(model.required_channels())
+    assert {"albedo_diffuse", "normal_diffuse", "depth_diffuse", "depth_diffuse_variance"} <= req
+    assert not req & {"albedo", "normal", "depth", "albedo_variance"}
+    # The first-hit form stays available for data without the *_diffuse buffers.
+    first = KPCN(replace(model.config, feature_hit="first"))
+    assert {"albedo", "normal", "depth"} <= set(first.required_channels())
+    b = synthetic_batch(model, height=6, width=7)
+    renamed = {k.replace("_diffuse", "") if k.split("_")[0] in ("albedo", "normal", "depth") else k: v
+               for k, v in b.items()}
+    first.load_state_dict(model.state_dict())
+    with torch.no_grad():
+        torch.testing.assert_close(first(renamed), model(b))
+    with pytest.raises(ValueError, match="feature_hit"):
+        KPCN(replace(model.config, feature_hit="second"))
+
+
+@pytest.mark.parametrize("name", ["kpcn", "kpcn_single"])
+def test_crop_features_equal_the_crop_of_the_image_features(name: str) -> None:
+    """Issue 8 item 6: depth scaled by each input's maximum made tiles of one image see different
+    depth scales (a seam source once we tile). Features of a crop must equal the crop of the
+    whole image's features (but the last row/column, whose gradients lose their neighbour)."""
+    model = build_model(name, "small")
+    b = synthetic_batch(model, batch=2, height=20, width=24)
+    b["depth_diffuse"][..., 15:, :] += 50.0  # the far part lies outside the crop
+    ys, xs = slice(3, 14), slice(5, 17)
+    crop = {k: v[..., ys, xs] for k, v in b.items()}
+    whole = model.features(b)
+    part = model.features(crop)
+    for k in whole:
+        torch.testing.assert_close(part[k][..., :-1, :-1], whole[k][..., ys, xs][..., :-1, :-1], rtol=1e-6, atol=1e-7)
 
 
 @pytest.mark.parametrize("name", ["kpcn", "kpcn_single"])
@@ -82,7 +122,7 @@ def test_kernel_output_is_convex_combination_even_at_borders() -> None:
     torch.manual_seed(0)
     model = build_model("kpcn", "small").eval()
     b = synthetic_batch(model, height=10, width=10)
-    b["diffuse"] = 0.7 * (b["albedo"] + EPS)
+    b["diffuse"] = 0.7 * (b["albedo_diffuse"] + EPS)
     b["specular"] = torch.full_like(b["specular"], 2.0)
     with torch.no_grad():
         br = model.forward_branches(b)
@@ -97,17 +137,124 @@ def _expected_params(cin: int, ch: int, k: int, layers: int, out: int) -> int:
 
 
 def test_paper_sizes() -> None:
-    """Sec. 5.2: 9 convolutions of 100 5x5 kernels per branch; 21x21 kernels (KPCN) or RGB (DPCN)."""
+    """Sec. 5.2: 9 convolutions of 100 5x5 kernels per branch; 21x21 kernels (KPCN) or RGB (DPCN).
+
+    The counts are literals (worked out by hand from the paper's architecture: 27 inputs, 9 layers
+    x 100 channels x 5x5, 441 or 3 outputs), so that a change of the code cannot move the
+    expectation with it."""
+    counts = {name: sum(p.numel() for p in build_model(name, "paper").parameters())
+              for name in ("kpcn", "dpcn", "kpcn_single")}
+    # One branch: 27*100*25+100 + 7*(100*100*25+100) + 100*441*25+441 = 2,921,241.
+    assert counts == {"kpcn": 5_842_482, "dpcn": 3_651_606, "kpcn_single": 2_921_241}
+    assert _expected_params(FEATURES_PER_BRANCH, 100, 5, 9, 21 * 21) == 2_921_241
+    assert _expected_params(FEATURES_PER_BRANCH, 100, 5, 9, 3) == 3_651_606 // 2
     kpcn = build_model("kpcn", "paper")
-    dpcn = build_model("dpcn", "paper")
-    single = build_model("kpcn_single", "paper")
-    per_branch = _expected_params(FEATURES_PER_BRANCH, 100, 5, 9, 21 * 21)
-    assert sum(p.numel() for p in kpcn.parameters()) == 2 * per_branch
-    assert sum(p.numel() for p in single.parameters()) == per_branch
-    assert sum(p.numel() for p in dpcn.parameters()) == 2 * _expected_params(FEATURES_PER_BRANCH, 100, 5, 9, 3)
+    assert FEATURES_PER_BRANCH == 27 and kpcn.config.kernel_size == 21
     assert sum(isinstance(m, torch.nn.Conv2d) for m in kpcn.branches["diffuse"].modules()) == 9
-    assert set(single.required_channels()) >= {"radiance", "radiance_variance", "albedo", "normal", "depth"}
+    single = build_model("kpcn_single", "paper")
+    assert set(single.required_channels()) >= {"radiance", "radiance_variance", "albedo_diffuse", "normal_diffuse", "depth_diffuse"}
     assert "radiance" not in kpcn.required_channels()
+
+
+def _uniform_kernel(model: KPCN) -> None:
+    """Zero the last layer: every logit 0, so each kernel is uniform over its in-image taps."""
+    for br in model.branches.values():
+        with torch.no_grad():
+            br.net[-1].weight.zero_()
+            br.net[-1].bias.zero_()
+
+
+def _box_mean(x: torch.Tensor, k: int) -> torch.Tensor:
+    """Plain reference: mean over the in-image pixels of each KxK window."""
+    return torch.nn.functional.avg_pool2d(x, k, stride=1, padding=k // 2, count_include_pad=False)
+
+
+def test_branches_filter_in_the_transformed_domain() -> None:
+    """Mutation "radiance fed without log compression" (issue 8 item 13), applied to features and
+    Eq. 4 together so that a centre kernel still reproduces the input: with a uniform kernel the
+    output must be the box mean of irradiance times albedo (diffuse) and exp(box mean of
+    log(1 + x)) - 1 (specular, single-branch radiance), not the box mean of the radiance."""
+    torch.manual_seed(0)
+    k = build_model("kpcn", "small").config.kernel_size
+    kpcn = build_model("kpcn", "small").eval()
+    single = build_model("kpcn_single", "small").eval()
+    _uniform_kernel(kpcn)
+    _uniform_kernel(single)
+    b = synthetic_batch(kpcn, height=12, width=14)
+    bs = synthetic_batch(single, height=12, width=14)
+    a = b["albedo_diffuse"] + EPS
+    want = a * _box_mean(b["diffuse"] / a, k) + torch.expm1(_box_mean(torch.log1p(b["specular"]), k))
+    want_single = torch.expm1(_box_mean(torch.log1p(bs["radiance"]), k))
+    with torch.no_grad():
+        torch.testing.assert_close(kpcn(b), want, rtol=1e-5, atol=1e-6)
+        torch.testing.assert_close(single(bs), want_single, rtol=1e-5, atol=1e-6)
+    # The transforms matter on this data (else the test could not tell them apart).
+    assert (want_single - _box_mean(bs["radiance"], k)).abs().max() > 0.1
+    assert (a * _box_mean(b["diffuse"] / a, k) - _box_mean(b["diffuse"], k)).abs().max() > 0.1
+
+
+@pytest.mark.parametrize("name", ["kpcn", "kpcn_single"])
+def test_kernel_is_the_softmax_of_the_raw_head_output(name: str) -> None:
+    """Mutation "ReLU on KPCN's kernel logits" (issue 8 item 13): the kernel must be the softmax
+    (over in-image taps) of the last layer's raw, signed output, checked against a plain unfold."""
+    torch.manual_seed(1)
+    model = build_model(name, "small").eval()
+    k = model.config.kernel_size
+    b = synthetic_batch(model, batch=2, height=10, width=11)
+    with torch.no_grad():
+        feats = model.features(b)
+        out = model.forward_branches(b)
+        for br, x in feats.items():
+            z = model.branches[br](x)  # (B, K*K, H, W)
+            assert (z < 0).float().mean() > 0.2  # signed logits: a ReLU would change them
+            inside = torch.nn.functional.unfold(torch.ones_like(x[:, :1]), k, padding=k // 2) > 0  # (B, K*K, H*W)
+            zz = z.flatten(2).masked_fill(~inside, float("-inf"))
+            w = torch.softmax(zz, dim=1)  # (B, K*K, H*W)
+            cols = torch.nn.functional.unfold(x[:, :3], k, padding=k // 2).view(x.shape[0], 3, k * k, -1)
+            want = (cols * w[:, None]).sum(2).view_as(x[:, :3])
+            torch.testing.assert_close(out[br], want, rtol=1e-5, atol=1e-6)
+
+
+def test_sharply_peaked_kernel_is_reachable_through_negative_logits() -> None:
+    """Mutation "ReLU on KPCN's kernel logits": a kernel whose off-centre logits are very negative
+    must reproduce its centre pixel (a ReLU clips them to 0 and the kernel becomes a box blur)."""
+    model = build_model("kpcn", "small").eval()
+    k = model.config.kernel_size
+    for br in model.branches.values():
+        with torch.no_grad():
+            br.net[-1].weight.zero_()
+            br.net[-1].bias.fill_(-40.0)
+            br.net[-1].bias[(k * k) // 2] = 0.0
+    b = synthetic_batch(model, height=12, width=12)
+    with torch.no_grad():
+        out = model(b)
+    want = b["diffuse"] + b["specular"]
+    assert ((out - want).abs() / want.abs().clamp_min(1e-3)).max() < 1e-4
+
+
+@pytest.mark.parametrize("name", ["kpcn", "dpcn", "kpcn_single"])
+def test_every_parameter_gets_a_gradient_and_every_input_matters(name: str) -> None:
+    """Every parameter tensor receives a non-zero gradient, and changing any one input channel
+    (colour, variance, albedo, normal, depth and their variances) changes the output: catches an
+    input group dropped from the features, or a layer cut off from the loss."""
+    torch.manual_seed(2)
+    model = build_model(name, "small")
+    b = synthetic_batch(model, height=8, width=8)
+    out = model(b)
+    (out - 0.5 * b.get("radiance", out.detach())).abs().mean().backward()
+    for pname, p in model.named_parameters():
+        assert p.grad is not None and p.grad.abs().sum() > 0, pname
+    g = torch.Generator().manual_seed(3)
+    with torch.no_grad():
+        # Compared in the branches' own domains, where an input's effect is not dwarfed by
+        # exp() of bright specular pixels; an input that no path reaches changes nothing at all.
+        base = model.forward_branches(b)
+        for ch in model.required_channels():
+            changed = dict(b)
+            changed[ch] = b[ch] * (1.0 + torch.rand(b[ch].shape, generator=g)) + 0.05
+            new = model.forward_branches(changed)
+            diff = max((new[k] - base[k]).abs().max().item() for k in base)
+            assert diff > 1e-5, ch
 
 
 def test_dpcn_outputs_transformed_colour_directly() -> None:
@@ -119,7 +266,7 @@ def test_dpcn_outputs_transformed_colour_directly() -> None:
         z = model.branches["specular"](feats["specular"])
     torch.testing.assert_close(br["specular"], z)
     out = model(b)
-    torch.testing.assert_close(out, (b["albedo"] + EPS) * br["diffuse"] + torch.expm1(br["specular"]))
+    torch.testing.assert_close(out, (b["albedo_diffuse"] + EPS) * br["diffuse"] + torch.expm1(br["specular"]))
 
 
 def test_per_branch_pretraining_then_finetune_step() -> None:

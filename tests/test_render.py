@@ -429,6 +429,13 @@ def test_render_image_folder(tmp_path, cornell, settings):
     assert set(img.meta.scene_features) == {"fov", "aperture_radius", "focus_distance", "shutter_open", "shutter_close"}
     noisy = img.read_noisy()
     assert "radiance_variance" in noisy and "position" in noisy
+    # Every per-pixel input a pixel model reads is written by default, e.g. KPCN's first-diffuse
+    # albedo/normal/depth (issue 8 item 5) and their variances.
+    from mcdenoise.models.registry import build_model
+
+    for name in ("kpcn", "dpcn", "kpcn_single"):
+        missing = [c for c in build_model(name, "small").required_channels() if c not in noisy]
+        assert not missing, (name, missing)
     np.testing.assert_array_equal(noisy["motion"], motion)
     # Per-pixel position is the mean first-hit position: inside the box.
     assert np.abs(noisy["position"]).max() <= 1.0 + 1e-3 and np.abs(noisy["position"]).mean() > 0.1

@@ -4,12 +4,17 @@ Each branch (diffuse, specular; or one ``radiance`` branch for inputs without a 
 stack of ``layers`` 5x5 convolutions with ReLU between them (Sec. 4.1, 5.2). Its input is built by
 :meth:`KPCN.features` from the stored buffers (Sec. 4.3, 5.1):
 
+* the feature buffers (albedo, normal, depth) are those of the first diffuse intersection
+  (``albedo_diffuse``, ``normal_diffuse``, ``depth_diffuse``), as the paper saves them (Sec. 6:
+  "at the first diffuse intersection in order to handle specular regions ... e.g., glass");
+  ``KPCNConfig.feature_hit = "first"`` takes the first-hit buffers for data without them;
 * diffuse: irradiance ``c / (albedo + eps)``, ``eps = 0.00316``; specular and single-branch
   radiance: ``log(1 + c)``;
 * x and y gradients of that colour and of normal, albedo and depth;
 * the colour variance carried through the same transform to first order (Eq. 5), reduced to one
   channel by its luminance, and the normal, albedo and depth variances, one channel each;
-* depth divided by its per-image maximum (so it lies in [0, 1]).
+* depth mapped by ``log(1 + depth / depth_scale)``, a fixed rule, so that a crop's features are
+  the crop of the whole image's (the paper scales to [0, 1] per frame, which differs per tile).
 
 KPCN predicts a KxK kernel per pixel (softmax over the K^2 taps, Sec. 4.2) applied to the
 transformed noisy colour; DPCN predicts the transformed colour directly. The branches are
@@ -55,6 +60,21 @@ class KPCNConfig:
     """True: separate diffuse and specular branches (Sec. 4.3); False: one branch on ``radiance``."""
     eps: float = 0.00316
     """Added to the albedo before dividing (Sec. 4.3)."""
+    feature_hit: str = "diffuse"
+    """Where the albedo/normal/depth features come from: ``"diffuse"``, the first diffuse
+    intersection (the paper); ``"first"``, the first intersection (data without the
+    ``*_diffuse`` buffers)."""
+    depth_scale: float = 1.0
+    """Depth feature ``log(1 + depth / depth_scale)``, in world units: depths well above it are
+    seen relatively (a step from 10 to 11 looks like one from 100 to 110)."""
+
+    def feature_channels(self) -> tuple[str, str, str]:
+        """Names of the (albedo, normal, depth) buffers the features read."""
+        if self.feature_hit == "diffuse":
+            return ("albedo_diffuse", "normal_diffuse", "depth_diffuse")
+        if self.feature_hit == "first":
+            return ("albedo", "normal", "depth")
+        raise ValueError(f"KPCNConfig.feature_hit: expected 'diffuse' or 'first', got {self.feature_hit!r}")
 
 
 def _lum(x: torch.Tensor) -> torch.Tensor:
@@ -75,24 +95,28 @@ def _grad_xy(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
 def kpcn_features(batch: dict[str, torch.Tensor], config: KPCNConfig) -> dict[str, torch.Tensor]:
     """Network inputs per branch: name -> (B, FEATURES_PER_BRANCH, H, W); channels 0:3 are the colour.
 
-    Branch names are ``diffuse`` and ``specular`` (``split``) or ``radiance``.
+    Branch names are ``diffuse`` and ``specular`` (``split``) or ``radiance``. Every channel of a
+    pixel depends only on that pixel and its right/lower neighbour (gradients), never on
+    statistics of the whole input, so tiles of an image see the same features as the image.
     """
     eps = config.eps
-    albedo = batch["albedo"]
-    normal = batch["normal"]
-    depth = batch["depth"]
-    # Per-image scale to [0, 1]; the variance is scaled consistently. clamp: an all-miss crop.
-    dmax = depth.abs().amax(dim=(1, 2, 3), keepdim=True).clamp_min(1e-8)
-    depth_s = depth / dmax
+    a_name, n_name, d_name = config.feature_channels()
+    albedo = batch[a_name]
+    normal = batch[n_name]
+    depth = batch[d_name].clamp_min(0)
+    # log(1 + d/s): a fixed map (no per-crop maximum); its variance by Eq. 5's first-order rule,
+    # h'(d) = 1 / (s + d).
+    s = config.depth_scale
+    depth_f = torch.log1p(depth / s)
     feat_var = torch.cat(
         [
-            batch[variance_name("normal")].mean(dim=1, keepdim=True),
-            _lum(batch[variance_name("albedo")]),
-            batch[variance_name("depth")] / dmax**2,
+            batch[variance_name(n_name)].mean(dim=1, keepdim=True),
+            _lum(batch[variance_name(a_name)]),
+            batch[variance_name(d_name)] / (s + depth) ** 2,
         ],
         dim=1,
     )
-    feat_grads = [_grad_xy(f) for f in (normal, albedo, depth_s)]
+    feat_grads = [_grad_xy(f) for f in (normal, albedo, depth_f)]
 
     def branch(color: torch.Tensor, var: torch.Tensor) -> torch.Tensor:
         gx, gy = _grad_xy(color)
@@ -157,13 +181,16 @@ class KPCN(Denoiser):
         super().__init__(config)
         if config.layers < 1 or config.kernel_size % 2 == 0:
             raise ValueError(f"KPCN: need layers >= 1 and an odd kernel_size, got {config}")
+        if not config.depth_scale > 0:
+            raise ValueError(f"KPCN: depth_scale must be > 0, got {config.depth_scale}")
+        config.feature_channels()  # refuses an unknown feature_hit now, not at the first batch
         out_ch = 3 if config.direct else config.kernel_size**2
         names = ("diffuse", "specular") if config.split else ("radiance",)
         self.branches = nn.ModuleDict({n: _Branch(config, FEATURES_PER_BRANCH, out_ch) for n in names})
 
     def required_channels(self) -> list[str]:
         colors = ["diffuse", "specular"] if self.config.split else ["radiance"]
-        names = colors + ["albedo", "normal", "depth"]
+        names = colors + list(self.config.feature_channels())
         return names + [variance_name(n) for n in names]
 
     def features(self, batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
@@ -193,18 +220,25 @@ class KPCN(Denoiser):
         return out
 
     def branch_targets(self, reference: dict[str, torch.Tensor], batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
-        """Reference colours (B, 3, H, W) carried into each branch's domain with the noisy albedo."""
+        """Reference colours (B, 3, H, W) carried into each branch's domain with the noisy albedo
+        (the feature albedo, as in :meth:`recombine`)."""
         if self.config.split:
+            albedo = batch[self.config.feature_channels()[0]]
             return {
-                "diffuse": reference["diffuse"] / (batch["albedo"] + self.config.eps),
+                "diffuse": reference["diffuse"] / (albedo + self.config.eps),
                 "specular": torch.log1p(reference["specular"].clamp_min(0)),
             }
         return {"radiance": torch.log1p(reference["radiance"].clamp_min(0))}
 
     def recombine(self, branches: dict[str, torch.Tensor], batch: dict[str, torch.Tensor]) -> torch.Tensor:
-        """Eq. 4: (albedo + eps) * diffuse + exp(specular) - 1 -> (B, 3, H, W) linear HDR."""
+        """Eq. 4: (albedo + eps) * diffuse + exp(specular) - 1 -> (B, 3, H, W) linear HDR.
+
+        ``albedo`` is the one the features divided by (:meth:`KPCNConfig.feature_channels`), so
+        the inverse is exact.
+        """
         if self.config.split:
-            return (batch["albedo"] + self.config.eps) * branches["diffuse"] + torch.expm1(branches["specular"])
+            albedo = batch[self.config.feature_channels()[0]]
+            return (albedo + self.config.eps) * branches["diffuse"] + torch.expm1(branches["specular"])
         return torch.expm1(branches["radiance"])
 
     def forward(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
