@@ -196,6 +196,21 @@ def test_resized_xml_finds_files_next_to_it(mi, tmp_path, monkeypatch):
     assert (int(film[0]), int(film[1])) == (12, 10)
 
 
+def test_define_that_only_sized_the_film_yields_to_the_size(mi):
+    """``-D res=128 --size 20x10`` on a film sized by $res: the explicit size wins (Mitsuba would
+    refuse the then unused $res); a -D the scene never uses is still refused, by name."""
+    from mcdenoise.errors import SceneError
+    from mcdenoise.render import load_scene
+
+    scene = load_scene(FIXTURE_XML, defines={"res": "128", "radius": "0.3"}, width=20, height=10)
+    film = scene.sensors()[0].film().crop_size()
+    assert (int(film[0]), int(film[1])) == (20, 10)
+    film = load_scene(FIXTURE_XML, defines={"res": "40"}).sensors()[0].film().crop_size()
+    assert (int(film[0]), int(film[1])) == (40, 40)
+    with pytest.raises(SceneError, match="nosuch"):
+        load_scene(FIXTURE_XML, defines={"nosuch": "1"}, width=20, height=10)
+
+
 def test_dict_scene_size_is_set_before_loading(mi):
     """Scene dicts get the film size before load_dict too: the x field of view equals that of the
     dict loaded by Mitsuba with that film (fov_axis=smaller makes it depend on the aspect)."""

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import sys
 import time as _time
 from dataclasses import asdict, dataclass, field, replace
@@ -165,6 +166,10 @@ def _first_line(e: BaseException) -> str:
     lines = [ln.strip() for ln in text.splitlines() if ln.strip()]
     # Mitsuba prefixes errors with "[xml.cpp:...] Error while loading ...": keep the informative tail.
     msg = lines[-1] if lines else type(e).__name__
+    if any("unused parameter" in ln.lower() for ln in lines):
+        # Mitsuba lists them one per line after the header; a -D the scene does not use.
+        names = [ln.lstrip("- ") for ln in lines if ln.startswith("- ")]
+        return f"the scene uses no parameter {', '.join(names)} (check the -D names)"[:400]
     for ln in lines:
         if "unknown" in ln.lower() or "not found" in ln.lower() or "could not" in ln.lower():
             msg = ln
@@ -187,8 +192,9 @@ def _crop_refusal(where: str, names: Collection[str]) -> SceneError:
     )
 
 
-def _xml_with_film_size(path: Path, width: int | None, height: int | None) -> str:
-    """The scene file's text with the first sensor's film set to ``width`` x ``height``.
+def _xml_with_film_size(path: Path, width: int | None, height: int | None) -> tuple[str, set[str]]:
+    """The scene file's text with the first sensor's film set to ``width`` x ``height``, and the
+    names of the ``$parameters`` the replaced width/height values referred to.
 
     Mitsuba derives a camera's projection (its x field of view from ``fov_axis`` or
     ``focal_length``, the thin lens, the orthographic extent) from the film size while it builds
@@ -216,13 +222,15 @@ def _xml_with_film_size(path: Path, width: int | None, height: int | None) -> st
     crop = {c.get("name", "") for c in film if c.get("name", "").lower() in _CROP_PARAMS}
     if crop:
         raise _crop_refusal(where, crop)
+    replaced: set[str] = set()
     for name, value in (("width", width), ("height", height)):
         if value is None:
             continue
         for child in [c for c in film if c.get("name") == name]:
+            replaced.update(re.findall(r"\$([A-Za-z0-9_]+)", child.get("value", "")))
             film.remove(child)
         ET.SubElement(film, "integer", {"name": name, "value": str(int(value))})
-    return ET.tostring(root, encoding="unicode")
+    return ET.tostring(root, encoding="unicode"), replaced
 
 
 def _dict_with_film_size(scene: dict, width: int | None, height: int | None) -> dict:
@@ -297,7 +305,12 @@ def load_scene(
             if not resize:
                 loaded = mi.load_file(str(path), **kwargs)
             else:
-                text = _xml_with_film_size(path, width, height)
+                text, replaced = _xml_with_film_size(path, width, height)
+                # Mitsuba refuses a -D value that nothing uses; one that only set the film size
+                # (e.g. -D res=...) is overridden by the explicit size instead.
+                for name in replaced:
+                    if name in kwargs and not re.search(rf"\${name}(?![A-Za-z0-9_])", text):
+                        del kwargs[name]
                 # load_file resolves relative paths (meshes, textures, includes) against the
                 # file's folder; a string has no folder, so lend it that one while it loads.
                 saved = mi.FileResolver(mi.file_resolver())
