@@ -2,14 +2,16 @@
 
 Per frame (Sec. 4, 5.1):
 
-1. albedo demodulation: the filtered signal is the HDR irradiance ``radiance / (albedo + eps)``;
+1. albedo demodulation: the filtered signal is the HDR irradiance ``radiance / a``, with ``a`` the
+   effective albedo of :func:`effective_albedo` (the albedo itself on surfaces, 1 where the albedo
+   is 0: sky, background, emitters);
 2. the ImportanceNet (RepVGG blocks, 14 channels) reads a 10-channel LDR input: tonemapped colour
    (3), albedo (3), normal scaled to [0, 1] (3), depth scaled to [0, 1] per image (1);
 3. it predicts N importance maps and N fusion logits; map i becomes a softmax kernel of size
    ``k_i`` (Eq. 3), the irradiance is filtered with each (Eq. 4) and the results are averaged with
    the per-pixel softmax of the fusion logits (Eq. 5) -- all inside
    :func:`mcdenoise.ops.importance.fused_importance_filter`;
-4. the albedo is multiplied back.
+4. the same effective albedo is multiplied back (so the inverse is exact).
 
 Temporal accumulation (Sec. 4.1) runs before the network on sequences and is kept apart from the
 per-frame forward: :func:`temporal_accumulate` (re-exported from :mod:`mcdenoise.ops.temporal`).
@@ -29,7 +31,9 @@ from mcdenoise.models.registry import Denoiser, register_model
 from mcdenoise.ops.importance import fused_importance_filter
 from mcdenoise.ops.temporal import temporal_accumulate
 
-__all__ = ["WSKPConfig", "WSKP", "RepVGGBlock", "wskp_input", "tonemap_ldr", "temporal_accumulate"]
+__all__ = [
+    "WSKPConfig", "WSKP", "RepVGGBlock", "wskp_input", "effective_albedo", "tonemap_ldr", "temporal_accumulate",
+]
 
 _PAPER = "Fan, Wang, Huo, Bao, Real-time Monte Carlo Denoising with Weight Sharing Kernel Prediction Network, EGSR 2021"
 #: Network input: LDR colour, albedo, normal, depth (Sec. 5.1).
@@ -43,8 +47,39 @@ def tonemap_ldr(x: torch.Tensor) -> torch.Tensor:
     return (x / (1 + x) + 1e-8) ** (1 / 2.2)
 
 
-def wskp_input(batch: dict[str, torch.Tensor], eps: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """Network input (B, 10, H, W) and HDR irradiance (B, 3, H, W) from the stored buffers."""
+def effective_albedo(albedo: torch.Tensor, normal: torch.Tensor, threshold: float) -> torch.Tensor:
+    """Albedo used for demodulation: (B, 3, H, W) albedo, (B, 3, H, W) normal -> (B, 3, H, W).
+
+    Dividing by the raw albedo (+ a tiny eps) breaks where radiance is not albedo x irradiance: on
+    sky, background and emitter pixels the albedo is 0 and the radiance is not, so the
+    "irradiance" there is radiance / eps; the kernels spread it into neighbouring surfaces, whose
+    albedo multiplies it back (issue 8, bug 4: outputs of 8.8 from inputs <= 0.67).  Two rules:
+
+    1. The fraction of a pixel's samples that missed the scene counts as albedo 1 (its radiance is
+       not modulated by any surface).  Pixel buffers are sample means and a miss has a zero normal,
+       so that fraction is ``1 - |normal|`` (an upper bound where normals vary inside the pixel):
+       ``a = albedo + (1 - |normal|)``.  An edge pixel mixing sky S and surface (albedo rho,
+       irradiance E) then demodulates to a weighted mean of E and S, never to S / (coverage rho).
+    2. Per channel, ``max(a, 1 - a / threshold)``: where a hit surface has (near) zero albedo --
+       mirrors and glass in an albedo AOV, black emitters -- the albedo carries no texture, so the
+       radiance is filtered as it is (effective albedo 1); the rule falls linearly to meet ``a``
+       at ``threshold / (1 + threshold)`` and is ``a`` above.  It is continuous and never below
+       that value, so demodulation amplifies a pixel's radiance at most ``1 + 1 / threshold``
+       times; surfaces darker than the threshold are filtered partly as radiance (their texture
+       is blurred a little, little in absolute terms).
+
+    The same value multiplies the filtered irradiance back, so the inverse is exact.
+    """
+    coverage = normal.norm(dim=1, keepdim=True).clamp(0, 1)
+    a = albedo + (1 - coverage)
+    return torch.maximum(a, 1 - a / threshold)
+
+
+def wskp_input(
+    batch: dict[str, torch.Tensor], threshold: float
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """From the stored buffers: network input (B, 10, H, W), HDR irradiance (B, 3, H, W) and the
+    effective albedo it was demodulated with (B, 3, H, W), see :func:`effective_albedo`."""
     missing = [n for n in ("radiance", "albedo", "normal", "depth") if n not in batch]
     if missing:
         raise ValueError(f"WSKP: batch lacks channels {missing}")
@@ -53,7 +88,8 @@ def wskp_input(batch: dict[str, torch.Tensor], eps: float) -> tuple[torch.Tensor
     depth = batch["depth"]
     dmax = depth.abs().amax(dim=(1, 2, 3), keepdim=True).clamp_min(1e-8)
     x = torch.cat([tonemap_ldr(radiance), albedo, (batch["normal"] + 1) * 0.5, depth / dmax], dim=1)
-    return x, radiance / (albedo + eps)
+    a = effective_albedo(albedo, batch["normal"], threshold)
+    return x, radiance / a, a
 
 
 class RepVGGBlock(nn.Module):
@@ -128,8 +164,9 @@ class WSKPConfig:
     """Output channels of every block but the last (paper: 14)."""
     kernel_sizes: tuple[int, ...] = (3, 5, 7, 9, 11, 13)
     """Filter sizes of the fused kernels, one importance map and one fusion weight each (paper: 3..13)."""
-    eps: float = 0.00316
-    """Added to the albedo before demodulation (the paper gives none; KPCN's value)."""
+    demod_threshold: float = 0.05
+    """Albedo below which demodulation is phased out (see :func:`effective_albedo`; the paper gives
+    no rule: it divides by the albedo)."""
 
 
 class WSKP(Denoiser):
@@ -153,7 +190,7 @@ class WSKP(Denoiser):
 
     def features(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
         """(B, 10, H, W) ImportanceNet input: LDR colour, albedo, normal, depth."""
-        return wskp_input(batch, self.config.eps)[0]
+        return wskp_input(batch, self.config.demod_threshold)[0]
 
     def predict(self, batch: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
         """Importance maps and fusion logits, each (B, N, H, W) with N = len(kernel_sizes)."""
@@ -162,11 +199,11 @@ class WSKP(Denoiser):
         return z[:, :n], z[:, n:]
 
     def forward(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
-        x, irradiance = wskp_input(batch, self.config.eps)
+        x, irradiance, albedo = wskp_input(batch, self.config.demod_threshold)
         z = self.net(x)
         n = len(self.config.kernel_sizes)
         filtered = fused_importance_filter(irradiance, z[:, :n], z[:, n:], sizes=tuple(self.config.kernel_sizes))
-        return filtered * (batch["albedo"] + self.config.eps)
+        return filtered * albedo
 
     def reparameterize(self) -> "WSKP":
         """Fold every RepVGG block into one 5x5 conv for inference; puts the model in eval mode.

@@ -3,11 +3,12 @@
 A U-Net reads the same 10-channel LDR input as :mod:`mcdenoise.models.wskp`. At each of its
 ``levels`` resolutions a 1x1 head predicts ``N`` importance maps and ``N`` fusion logits (paper:
 N = 2 kernels of sizes 3 and 5 per level) and, below the coarsest level, one blend-weight logit.
-The demodulated irradiance, box-downsampled to every level, is filtered there with
-:func:`fused_importance_filter`; the levels are combined from the coarsest with Eq. 7
-(``o = i_f - alpha U D i_f + alpha U i_c``, :func:`mcdenoise.ops.multiscale.multires_blend`) and the
-albedo is multiplied back. Inputs are edge-padded to a multiple of ``2**(levels-1)`` and the
-output cropped back, so any H, W works.
+The demodulated irradiance (same effective albedo as ``wskp``, see
+:func:`mcdenoise.models.wskp.effective_albedo`), box-downsampled to every level, is filtered there
+with :func:`fused_importance_filter`; the levels are combined from the coarsest with Eq. 7
+(``o = i_f - alpha U D i_f + alpha U i_c``, :func:`mcdenoise.ops.multiscale.multires_blend`, alpha a
+sigmoid) and the effective albedo is multiplied back. Inputs are edge-padded to a multiple of
+``2**(levels-1)`` and the output cropped back, so any H, W works.
 """
 
 from __future__ import annotations
@@ -35,8 +36,8 @@ class WSKPMRConfig:
     the widths are in the paper's supplementary, which we do not have: our choice)."""
     kernel_sizes: tuple[int, ...] = (3, 5)
     """Fused kernel sizes at every level (paper: 3 and 5)."""
-    eps: float = 0.00316
-    """Added to the albedo before demodulation."""
+    demod_threshold: float = 0.05
+    """Albedo below which demodulation is phased out (see :func:`mcdenoise.models.wskp.effective_albedo`)."""
 
 
 def _double_conv(cin: int, cout: int) -> nn.Sequential:
@@ -71,20 +72,23 @@ class WSKPMR(Denoiser):
 
     def features(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
         """(B, 10, H, W) U-Net input: LDR colour, albedo, normal, depth."""
-        return wskp_input(batch, self.config.eps)[0]
+        return wskp_input(batch, self.config.demod_threshold)[0]
 
-    def forward(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
-        x, irr = wskp_input(batch, self.config.eps)
-        h, w = x.shape[-2:]
+    def _pad(self, t: torch.Tensor) -> torch.Tensor:
+        """Edge-pad (B, C, H, W) to a multiple of ``2**(levels-1)``: the kernels then see repeated
+        border pixels rather than black."""
         m = 2 ** (self.levels - 1)
-        ph, pw = (-h) % m, (-w) % m
-        if ph or pw:
-            # Edge padding: the kernels then see repeated border pixels rather than black.
-            x = F.pad(x, (0, pw, 0, ph), mode="replicate")
-            irr = F.pad(irr, (0, pw, 0, ph), mode="replicate")
+        ph, pw = (-t.shape[-2]) % m, (-t.shape[-1]) % m
+        return F.pad(t, (0, pw, 0, ph), mode="replicate") if ph or pw else t
 
+    def predict(
+        self, batch: dict[str, torch.Tensor]
+    ) -> list[tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]]:
+        """Per level, finest first: importance maps (B, N, H_l, W_l), fusion logits (B, N, H_l, W_l)
+        and the Eq. 7 blend weight alpha (B, 1, H_l, W_l) in [0, 1] (None at the coarsest level).
+        H_l, W_l: the padded size halved l times."""
+        f = self._pad(self.features(batch))
         skips = []
-        f = x
         for i, enc in enumerate(self.enc):
             if i > 0:
                 f = F.avg_pool2d(f, 2)
@@ -95,18 +99,29 @@ class WSKPMR(Denoiser):
             f = self.dec[i](torch.cat([F.interpolate(f, scale_factor=2.0, mode="nearest"), skips[i]], dim=1))
             outs.append(self.heads[i](f))
         outs.reverse()  # finest first
-
         n = len(self.config.kernel_sizes)
+        # alpha is a sigmoid: Eq. 7 is an interpolation between the fine result and the fine result
+        # with its low frequencies replaced by the coarse one; a raw logit would extrapolate.
+        return [
+            (z[:, :n], z[:, n : 2 * n], torch.sigmoid(z[:, 2 * n : 2 * n + 1]) if i < self.levels - 1 else None)
+            for i, z in enumerate(outs)
+        ]
+
+    def forward(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
+        _, irr, albedo = wskp_input(batch, self.config.demod_threshold)
+        h, w = irr.shape[-2:]
+        levels = self.predict(batch)
         sizes = tuple(self.config.kernel_sizes)
-        irrs = [irr]
+        irrs = [self._pad(irr)]
         for _ in range(self.levels - 1):
             irrs.append(downsample2(irrs[-1]))
-        result = fused_importance_filter(irrs[-1], outs[-1][:, :n], outs[-1][:, n : 2 * n], sizes=sizes)
+        imp, fus, _ = levels[-1]
+        result = fused_importance_filter(irrs[-1], imp, fus, sizes=sizes)
         for i in range(self.levels - 2, -1, -1):
-            z = outs[i]
-            fine = fused_importance_filter(irrs[i], z[:, :n], z[:, n : 2 * n], sizes=sizes)
-            result = multires_blend(fine, result, torch.sigmoid(z[:, 2 * n : 2 * n + 1]))
-        return result[..., :h, :w] * (batch["albedo"] + self.config.eps)
+            imp, fus, alpha = levels[i]
+            fine = fused_importance_filter(irrs[i], imp, fus, sizes=sizes)
+            result = multires_blend(fine, result, alpha)  # type: ignore[arg-type]
+        return result[..., :h, :w] * albedo
 
 
 @register_model(

@@ -6,13 +6,19 @@ One scalar importance ``I`` per pixel encodes a whole kernel: for a window of si
 take part (the paper unfolds the importance map; we do not let padding pixels carry weight).
 
 Because the kernel at p depends only on exp(I) over p's window, ``out = box_k(exp(I) c) /
-box_k(exp(I))``: two box sums, each O(H W) whatever k, computed with separable cumulative sums.
+box_k(exp(I))``, and the box is separable: a pass along rows, then one along columns.
 
-Memory / numerics of the fast path: ``exp(I - max_image I)`` and the box sums are formed in
-float64 (float32 inputs included, except on devices without float64): this keeps the cumulative
-sums exact to ~1e-12 relative and lets I span ~700 within one image before windows underflow;
-windows whose every importance lies > 700 below the image max are treated as uniform.  Extra
-memory: a few ``8 B (C + 1) H W``-byte buffers per window size; no K*K tensor is formed.
+Numerics of the fast path (issue 8, bug 3): every exponential is shifted by the maximum over the
+window it is summed into, never by an image-wide maximum, and the sums are direct sums of k
+shifted slices, never differences of running sums (which cancel catastrophically: one importance
+40 above its row gave 0/0).  The row pass sums ``exp(I(q) - m1(p))`` with m1 the row-segment
+maximum; the column pass carries each row sum with its own m1 and sums ``exp(m1(q) - m2(p))``
+times it, m2 the maximum over the whole window.  Every exponent is <= 0 and the window's own
+maximum contributes exactly 1, so the denominator is >= 1: no overflow, no 0/0, whatever the
+range of I, and float32 accumulation is accurate to a few ulps (float16/bfloat16 inputs are
+accumulated in float32).  The shifts cancel exactly, so they are detached.  Cost per window size:
+2k exponentials of one channel and 2k multiply-adds of C + 1 channels per pixel; extra memory a
+few ``(C + 1) H W`` buffers (no K*K tensor).
 """
 
 from __future__ import annotations
@@ -42,10 +48,6 @@ WSKP_SIZES: tuple[int, ...] = (3, 5, 7, 9, 11, 13)
 
 _IMG = "(B, C, H, W)"
 _IMP = "(B, 1, H, W)"
-
-# Shifted log-importances below this are clamped (float64 exp underflows near -745).
-_MIN_LOG = -700.0
-
 
 def _check(image: Tensor, importance: Tensor, size: int, op: str) -> None:
     check_tensor(image, "image", 4, _IMG, op)
@@ -77,47 +79,77 @@ def importance_filter_reference(image: Tensor, importance: Tensor, size: int) ->
     return gather_reference(image, importance_kernel_reference(importance, size))
 
 
+def _tap_slices(x: Tensor, size: int, axis: int, pad_value: float) -> tuple[Tensor, list[Tensor]]:
+    """Pad ``x`` by size // 2 on both ends of ``axis`` and return the k slices, one per window tap."""
+    r = size // 2
+    n = x.shape[axis]
+    pad = [0, 0, 0, 0]
+    pad[0 if axis == -1 else 2] = r
+    pad[1 if axis == -1 else 3] = r
+    xp = F.pad(x, pad, value=pad_value)
+    return xp, [xp.narrow(axis, t, n) for t in range(size)]
+
+
 def box_sum(x: Tensor, size: int) -> Tensor:
     """Sum over the size x size window around each pixel, clipped at the border: (..., H, W) -> same.
 
-    Separable cumulative sums (one per axis), so the cost is O(H W) whatever ``size`` is and the
-    running sums stay short (one row or column), which keeps cancellation error small.
+    Separable direct sums of shifted slices of a zero-padded copy (no running-sum differences, so
+    no cancellation); cost O(size H W).
+    """
+    if size < 1 or size % 2 == 0:
+        raise ValueError(f"box_sum: size must be a positive odd int, got {size!r}")
+    lead = x.shape[:-2]
+    y = x.reshape(-1, 1, *x.shape[-2:])
+    for axis in (-1, -2):
+        _, taps = _tap_slices(y, size, axis, 0.0)
+        y = torch.stack(taps).sum(0) if size > 1 else y.clone()
+    return y.reshape(*lead, *x.shape[-2:])
+
+
+def _shifted_window_sum(values: Tensor, log_w: Tensor, size: int, axis: int) -> tuple[Tensor, Tensor]:
+    """One separable pass of the importance filter along ``axis`` (-1 rows, -2 columns).
+
+    Args:
+        values: (B, C, H, W) values v.
+        log_w: (B, 1, H, W) log-weights l (finite).
+        size: odd window length along ``axis``.
+
+    Returns:
+        ``(sums, shift)``: ``sums(p) = sum_{q in win(p)} exp(l(q) - shift(p)) v(q)``, (B, C, H, W),
+        with ``shift(p) = max_{q in win(p)} l(q)`` (B, 1, H, W), detached.  Taps outside the image
+        are padded with l = -inf, v = 0, so they carry no weight.
     """
     r = size // 2
-    if r == 0:
-        return x.clone()
-    for axis in (-1, -2):
-        n = x.shape[axis]
-        c = torch.cumsum(x, dim=axis)  # c[t] = sum of x[:t+1]
-        # Window [t - r, t + r] clipped to [0, n): c[min(t + r, n - 1)] - c[t - r - 1] (0 below 0).
-        # Extending c with r copies of its last entry and r + 1 zeros in front turns both clamps
-        # into two plain slices of one tensor.
-        lead = list(c.shape)
-        lead[axis] = r + 1
-        tail = c.narrow(axis, n - 1, 1).expand(*[r if d == (axis % c.dim()) else -1 for d in range(c.dim())])
-        ext = torch.cat([c.new_zeros(lead), c, tail], dim=axis)  # ext[t + r + 1] = c[t]
-        x = ext.narrow(axis, 2 * r + 1, n) - ext.narrow(axis, 0, n)
-    return x
+    kernel = (1, size) if axis == -1 else (size, 1)
+    padding = (0, r) if axis == -1 else (r, 0)
+    # The shift cancels in the final ratio, so it carries no gradient: detach is exact.
+    shift = F.max_pool2d(log_w.detach(), kernel, stride=1, padding=padding)
+    _, lw_taps = _tap_slices(log_w, size, axis, float("-inf"))
+    _, v_taps = _tap_slices(values, size, axis, 0.0)
+    # In-place accumulation halves the CPU time; autograd allows it (addcmul_ saves its factors,
+    # not the accumulator).
+    acc = torch.zeros_like(values)
+    for lw, v in zip(lw_taps, v_taps):
+        acc.addcmul_(torch.sub(lw, shift).exp_(), v)
+    return acc, shift
 
 
 def _acc_dtype(t: Tensor) -> torch.dtype:
-    if t.dtype == torch.float64 or t.device.type == "mps":
-        return t.dtype if t.dtype == torch.float64 else torch.float32
-    return torch.float64
+    # Half-precision sums of up to 169 terms would lose ~2 digits; float32 is enough (see above).
+    return torch.float32 if t.dtype in (torch.float16, torch.bfloat16) else t.dtype
 
 
 def importance_filter_fast(image: Tensor, importance: Tensor, size: int) -> Tensor:
-    """Ratio-of-box-sums importance filter; same contract as :func:`importance_filter`."""
+    """Two-pass, per-window-shifted importance filter; same contract as :func:`importance_filter`."""
     _check(image, importance, size, "importance_filter")
     if size == 1:
         return image.clone()
     acc = _acc_dtype(image)
-    imp = importance.to(acc)
-    # Any per-image shift cancels in the ratio, so the max carries no gradient: detach is exact.
-    m = imp.amax(dim=(1, 2, 3), keepdim=True).detach()
-    e = torch.exp((imp - m).clamp(min=_MIN_LOG))  # (B, 1, H, W)
     c = image.shape[1]
-    sums = box_sum(torch.cat([e * image.to(acc), e], dim=1), size)  # numerator and denominator in one pass
+    # Numerator and denominator in one pass: the image with a ones channel.
+    vals = torch.cat([image.to(acc), torch.ones_like(importance, dtype=acc)], dim=1)
+    rows, m1 = _shifted_window_sum(vals, importance.to(acc), size, -1)  # row sums relative to m1
+    sums, _ = _shifted_window_sum(rows, m1, size, -2)  # relative to the window max; denominator >= 1
     return (sums[:, :c] / sums[:, c:]).to(image.dtype)
 
 
