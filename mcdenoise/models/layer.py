@@ -23,8 +23,12 @@ from torch import nn
 
 from mcdenoise.data.channels import SCENE_FEATURES, num_components
 from mcdenoise.models.blocks import FCStack, UNet, signed_log1p
-from mcdenoise.ops.kernels import per_destination_exp, per_pixel_exp
+from typing import Callable
+
+import torch.nn.functional as F
+
 from mcdenoise.models.registry import Denoiser, register_model
+from mcdenoise.ops.kernels import destination_max, per_destination_exp, per_pixel_exp
 from mcdenoise.ops.gather import gather
 from mcdenoise.ops.multiscale import build_pyramid, combine_levels
 from mcdenoise.ops.splat import splat
@@ -48,6 +52,10 @@ LAYER_CHANNELS: tuple[str, ...] = (
 
 _LOG_CHANNELS = frozenset({"radiance", "diffuse", "specular", "depth", "depth_diffuse"})
 _AP = SCENE_FEATURES.index("aperture_radius")
+#: Elements of one band's largest tensor in the row-banded inference path: a band's kernel logits
+#: (B, L, K*K, rows, W), or a band's per-sample features (B, S, C, rows, W). 2^26 float32 = 256 MB:
+#: large enough that the kernels' row halo (K - 1 rows of zero weights) costs little splat time.
+_BAND_ELEMS = 1 << 26
 _FOCUS = SCENE_FEATURES.index("focus_distance")
 
 
@@ -258,40 +266,91 @@ class LayerDenoiser(Denoiser):
         l_n = l_w.flip(1).cumsum(1).flip(1)
         return l_rad, l_w, l_n, l_emb
 
-    def _filter(self, logits: torch.Tensor, l_rad: torch.Tensor, l_w: torch.Tensor, l_n: torch.Tensor) -> torch.Tensor:
-        """Eq. 3 then Eq. 4-6 at one resolution: logits (B, L, K*K, h, w), layer sums l_rad
-        (B, L, 3, h, w), l_w and l_n (B, L, 1, h, w) -> composited (B, 3, h, w)."""
+    def _filter(
+        self,
+        logits: torch.Tensor | Callable[[int, int], torch.Tensor],
+        l_rad: torch.Tensor,
+        l_w: torch.Tensor,
+        l_n: torch.Tensor,
+        extra: int = 0,
+    ) -> tuple[torch.Tensor, torch.Tensor] | torch.Tensor:
+        """Eq. 3 then Eq. 4-6 at one resolution.
+
+        ``logits``: the kernel generator's output (B, L, K*K + extra, h, w), or a function
+        ``(y0, y1) -> `` its rows ``y0:y1``, called band by band so that no kernel-sized tensor of
+        the whole image exists (at 1080p, 17x17 and L = 2: 4.8 GB each). Layer sums ``l_rad``
+        (B, L, 3, h, w), ``l_w`` and ``l_n`` (B, L, 1, h, w). Returns the composited (B, 3, h, w),
+        and with ``extra`` > 0 also layer 0's extra output channels (B, extra, h, w).
+        """
         cfg = self.config
-        b, nl, kk, h, w = logits.shape
-        k = cfg.kernel_size
+        b, nl, _, h, w = l_rad.shape
+        k, kk = cfg.kernel_size, cfg.kernel_size**2
+        gen = logits if callable(logits) else (lambda y0, y1: logits[..., y0:y1, :])
         weighted = cfg.compositing == "weighted"
+        extras: list[torch.Tensor] = []
         if cfg.splat:
             # Splat (den * x, den) with weights exp(logit) as (x, 1) with weights exp(logit +
             # log den), den = the sum each layer is normalised by (l_w for Eq. 6, l_n for Eq. 4).
             # Then the largest tap landing on a pixel carries weight 1 after the per-destination
             # shift, even when the source with the largest logit has den = 0 (a softmax over
             # layers that underflowed), so a filtered denominator cannot underflow to 0 while the
-            # exact one is positive.
+            # exact one is positive. Sources with den = 0 add nothing and get logit -inf.
             den = l_w if weighted else l_n
             pos = den > 0
             safe = torch.where(pos, den, torch.ones_like(den))
             parts = [l_rad / safe] if weighted else [l_rad / safe, l_w / safe]
             vals = torch.cat(parts + [pos.to(den.dtype)], dim=2)
+            log_den = torch.log(safe).masked_fill(~pos, float("-inf"))
             c = vals.shape[2]
-            # Sources with den = 0 add nothing (their values are 0); their logits are pushed below
-            # every real one so that they cannot set the shift and underflow the real taps.
-            floor = logits.detach().amin() - 200.0
-            lw = torch.where(pos, logits + torch.log(safe), floor)
             # Eq. 6 sums over layers before dividing, so its shift is shared by all layers; Eq. 4-5
             # divide within a layer only, and a per-layer shift keeps a layer far below the other
             # one in logit from underflowing while it is still visible.
-            weights = per_destination_exp(lw if weighted else lw.reshape(b * nl, 1, kk, h, w), k)
-            num, _ = splat(vals.reshape(b * nl, 1, c, h, w), weights.reshape(b * nl, 1, kk, h, w))
+            bs, ss = (b, nl) if weighted else (b * nl, 1)
+            r = k // 2
+            rows = self._kernel_band_rows(b * nl * (kk + extra) * w, h)
+
+            def folded(y0: int, y1: int, keep_extra: bool) -> torch.Tensor:
+                lg = gen(y0, y1)
+                if extra and keep_extra:
+                    extras.append(lg[:, 0, kk:])
+                # A fresh tensor (the add), so the exponentiation below may work in place.
+                return (lg[:, :, :kk] + log_den[..., y0:y1, :]).reshape(bs, ss, kk, y1 - y0, w)
+
+            plane = torch.full((bs, h + 2 * r, w + 2 * r), float("-inf"), dtype=l_rad.dtype, device=l_rad.device)
+            if rows >= h:
+                lw = folded(0, h, True)  # one band: kept (with its graph), not recomputed
+                destination_max(lw.detach(), k, plane=plane)
+            else:
+                # Two passes: the shift of a destination needs every band's logits that land on
+                # it, so the first pass only records the maxima and the second regenerates.
+                with torch.no_grad():
+                    for y0 in range(0, h, rows):
+                        destination_max(folded(y0, min(h, y0 + rows), False), k, plane=plane, row0=y0)
+            # A destination nothing real lands on: any finite shift (only -inf taps go there).
+            plane.masked_fill_(torch.isinf(plane), 0.0)
+            if rows >= h:
+                num, _ = splat(vals.reshape(bs, ss, c, h, w), per_destination_exp(lw, k, plane, inplace=True))
+            else:
+                num = vals.new_zeros(bs, c, h, w)
+                v_all = vals.reshape(bs, ss, c, h, w)
+                for y0 in range(0, h, rows):
+                    y1 = min(h, y0 + rows)
+                    wts = per_destination_exp(folded(y0, y1, True), k, plane, row0=y0, inplace=True)
+                    # Zero rows around the band catch what its kernels splat beyond it.
+                    lo, hi = max(0, y0 - r), min(h, y1 + r)
+                    pad = (0, 0, y0 - lo, hi - y1)
+                    part, _ = splat(F.pad(v_all[..., y0:y1, :], pad), F.pad(wts, pad))
+                    num[..., lo:hi, :] += part
+            if weighted:  # the splat summed over its "samples", the layers: Eq. 6's sums
+                return self._with_extra(_ratio(num[:, :3], num[:, 3:4]), extras, extra)
             num = num.reshape(b, nl, c, h, w)
             rad, wbar, nbar = num[:, :, :3], num[:, :, 3:4], num[:, :, -1:]
         else:
+            lg = gen(0, h)
+            if extra:
+                extras.append(lg[:, 0, kk:])
             vals = torch.cat([l_rad, l_w, l_n], dim=2)
-            weights = per_pixel_exp(logits)
+            weights = per_pixel_exp(lg[:, :, :kk])
             num = gather(vals.reshape(b * nl, 5, h, w), weights.reshape(b * nl, kk, h, w)).reshape(b, nl, 5, h, w)
             rad, wbar, nbar = num[:, :, :3], num[:, :, 3:4], num[:, :, 4:5]
         # Every filtered sum at a pixel u carries a factor exp(-shift(u)) that differs between
@@ -300,50 +359,131 @@ class LayerDenoiser(Denoiser):
         # blacked out every pixel near a peaked kernel, issue 8 bug 2); a sum of exactly 0 means
         # nothing landed, and its numerator is then 0 too.
         if weighted:
-            return _ratio(rad.sum(dim=1), wbar.sum(dim=1))
-        out = torch.zeros_like(rad[:, 0])
-        transmit = torch.ones_like(wbar[:, 0])
-        for j in range(nl):
-            out = out + transmit * _ratio(rad[:, j], nbar[:, j])
-            # wbar_j <= nbar_j (w_j <= n_j before filtering), so the factor stays in [0, 1].
-            transmit = transmit * (1 - _ratio(wbar[:, j], nbar[:, j]))
-        return out
+            out = _ratio(rad.sum(dim=1), wbar.sum(dim=1))
+        else:
+            out = torch.zeros_like(rad[:, 0])
+            transmit = torch.ones_like(wbar[:, 0])
+            for j in range(nl):
+                out = out + transmit * _ratio(rad[:, j], nbar[:, j])
+                # wbar_j <= nbar_j (w_j <= n_j before filtering), so the factor stays in [0, 1].
+                transmit = transmit * (1 - _ratio(wbar[:, j], nbar[:, j]))
+        return self._with_extra(out, extras, extra)
+
+    @staticmethod
+    def _with_extra(
+        out: torch.Tensor, extras: list[torch.Tensor], extra: int
+    ) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
+        return (out, torch.cat(extras, dim=-2)) if extra else out
+
+    @staticmethod
+    def _kernel_band_rows(elems_per_row: int, h: int) -> int:
+        """Rows per band of kernel generation + splatting; all rows (no recomputation) while
+        gradients are being recorded, since autograd keeps every band's weights anyway."""
+        if torch.is_grad_enabled():
+            return h
+        return max(1, min(h, _BAND_ELEMS // max(1, elems_per_row)))
 
     def forward(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
         """Denoise: per-sample buffers -> ``(B, 3, H, W)`` linear radiance."""
         cfg = self.config
-        f, radiance = self.features(batch)
-        e = self.reducer(f)
-        radiance = radiance.to(e.dtype)
+        ctx, decoded, (l_rad, l_w, l_n, l_emb) = self._layer_sums(batch)
         if not cfg.hierarchical:
-            ctx = self.unet(e.mean(dim=1))
-            l_rad, l_w, l_n, l_emb = self.partition(e, ctx, radiance)
-            return self._filter(self.kernel_gen(l_emb, ctx), l_rad, l_w, l_n)
-        return self._forward_hierarchical(e, radiance)
 
-    def _forward_hierarchical(self, e: torch.Tensor, radiance: torch.Tensor) -> torch.Tensor:
+            def logits(y0: int, y1: int) -> torch.Tensor:
+                l_emb_rows, ctx_rows = l_emb[..., y0:y1, :], ctx[..., y0:y1, :]
+                return self.kernel_gen(l_emb_rows, ctx_rows)
+
+            return self._filter(logits, l_rad, l_w, l_n)  # type: ignore[return-value]
+        return self._forward_hierarchical(ctx, decoded, l_rad, l_w, l_n, l_emb)
+
+    def _layer_sums(
+        self, batch: dict[str, torch.Tensor]
+    ) -> tuple[torch.Tensor, list[torch.Tensor], tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]]:
+        """Per-sample networks, U-Net and Eq. 2: ``(context (B, Cc, H, W), U-Net decoder features
+        (hierarchical only, else []), (l_rad, l_w, l_n, l_emb))`` as :meth:`partition` returns.
+
+        Without autograd and on images whose per-sample tensors exceed ``_BAND_ELEMS``, the
+        per-sample work runs in row bands, twice (once for the mean embedding the U-Net needs,
+        once for the partition, which needs the U-Net's context): no (B, S, C, H, W) tensor
+        besides the inputs then exists (at 1080p, 8 spp: 2.1 GB each, 8.5 GB at 32 spp), for
+        twice the per-sample compute.
+        """
+        cfg = self.config
+        b, s, _, h, w = batch["radiance"].shape
+        widest = max(self.input_features, cfg.embed_width, *cfg.partitioner_widths)
+        # Two such tensors live at once in the reducer and partitioner (a layer's input and output).
+        rows = h if torch.is_grad_enabled() else max(1, min(h, _BAND_ELEMS // (2 * b * s * widest * w)))
+        if rows >= h:
+            f, radiance = self.features(batch)
+            e = self.reducer(f)
+            radiance = radiance.to(e.dtype)
+            ctx, decoded = self._unet(e.mean(dim=1))
+            return ctx, decoded, self.partition(e, ctx, radiance)
+
+        def band(y0: int, y1: int) -> dict[str, torch.Tensor]:
+            return {n: (v[..., y0:y1, :] if v.dim() == 5 else v) for n, v in batch.items()}
+
+        mean = None
+        for y0 in range(0, h, rows):
+            y1 = min(h, y0 + rows)
+            e = self.reducer(self.features(band(y0, y1))[0]).mean(dim=1)
+            if mean is None:
+                mean = e.new_empty(b, e.shape[1], h, w)
+            mean[..., y0:y1, :] = e
+        assert mean is not None
+        ctx, decoded = self._unet(mean)
+        sums: list[torch.Tensor] = []
+        for y0 in range(0, h, rows):
+            y1 = min(h, y0 + rows)
+            f, radiance = self.features(band(y0, y1))
+            e = self.reducer(f)
+            parts = self.partition(e, ctx[..., y0:y1, :], radiance.to(e.dtype))
+            if not sums:
+                sums = [p.new_empty(*p.shape[:-2], h, w) for p in parts]
+            for out, p in zip(sums, parts):
+                out[..., y0:y1, :] = p
+        return ctx, decoded, tuple(sums)  # type: ignore[return-value]
+
+    def _unet(self, mean: torch.Tensor) -> tuple[torch.Tensor, list[torch.Tensor]]:
+        # Only the hierarchy needs the decoder features (the finest is a full-resolution tensor).
+        if self.config.hierarchical:
+            return self.unet(mean, return_decoder=True)  # type: ignore[return-value]
+        return self.unet(mean), []  # type: ignore[return-value]
+
+    def _forward_hierarchical(
+        self,
+        ctx: torch.Tensor,
+        decoded: list[torch.Tensor],
+        l_rad: torch.Tensor,
+        l_w: torch.Tensor,
+        l_n: torch.Tensor,
+        l_emb: torch.Tensor,
+    ) -> torch.Tensor:
         """Sec. 6: filter and composite each pyramid level on its own (G_i), then Eq. 10."""
         cfg = self.config
-        ctx, decoded = self.unet(e.mean(dim=1), return_decoder=True)
-        l_rad, l_w, l_n, l_emb = self.partition(e, ctx, radiance)
         b, nl = l_rad.shape[:2]
         # Box-downsampled sums keep every ratio of Eq. 4 meaningful (a mean of sums is a scaled sum).
         stacked = torch.cat([l_rad, l_w, l_n, l_emb], dim=2).flatten(1, 2)
         pyramid = build_pyramid(stacked, cfg.levels)
         ctxs = [ctx] + [decoded[-1 - i] for i in range(1, cfg.levels)]
-        kk = cfg.kernel_size**2
         levels = []
         lam = None
-        for i, (buf, c) in enumerate(zip(pyramid, ctxs)):
+        for i, (buf, ctx_i) in enumerate(zip(pyramid, ctxs)):
             hh, ww = buf.shape[-2:]
             buf = buf.reshape(b, nl, -1, hh, ww)
-            rad, lw, ln, emb = buf[:, :, :3], buf[:, :, 3:4], buf[:, :, 4:5], buf[:, :, 5:]
-            logits = self.kernel_gens[i](emb, c)
+            rad, lw, ln, emb_i = buf[:, :, :3], buf[:, :, 3:4], buf[:, :, 4:5], buf[:, :, 5:]
+
+            def logits(y0: int, y1: int, i: int = i, emb_i: torch.Tensor = emb_i, ctx_i: torch.Tensor = ctx_i) -> torch.Tensor:
+                emb, c = emb_i[..., y0:y1, :], ctx_i[..., y0:y1, :]
+                return self.kernel_gens[i](emb, c)
+
             if i == 0:
                 # The first layer's level-0 generator also outputs the per-pixel level weights.
-                lam = torch.softmax(logits[:, 0, kk:], dim=1)
-                logits = logits[:, :, :kk]
-            levels.append(self._filter(logits, rad, lw, ln))
+                g, lam_logits = self._filter(logits, rad, lw, ln, extra=cfg.levels)  # type: ignore[misc]
+                lam = torch.softmax(lam_logits, dim=1)
+            else:
+                g = self._filter(logits, rad, lw, ln)
+            levels.append(g)
         assert lam is not None
         return combine_levels(levels, lam)
 
