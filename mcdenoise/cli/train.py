@@ -21,7 +21,7 @@ from mcdenoise.errors import McDenoiseError
 
 #: CLI flag (dest) -> TrainConfig field, for the flags that map one to one.
 _FIELDS = ("model", "preset", "data", "steps", "batch", "crop", "lr", "loss", "device", "seed", "val_every",
-           "checkpoint_every", "keep_every", "workers", "target", "sampling", "warmup", "schedule", "clip_grad",
+           "checkpoint_every", "keep_every", "workers", "threads", "target", "sampling", "warmup", "schedule", "clip_grad",
            "branch_fraction", "amp", "val_images")
 
 
@@ -45,6 +45,7 @@ def add_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--checkpoint-every", type=int, help="checkpoint every K steps and at the end (default 100)")
     p.add_argument("--keep-every", type=int, help="keep the checkpoints at multiples of K steps (default 1000)")
     p.add_argument("--workers", type=int, help="data-loader processes per training process (default 2)")
+    p.add_argument("--threads", type=int, help="torch threads per training process (default: torch's; 1 helps on 2 cores)")
     p.add_argument("--target", choices=("reference", "noisy"), help="reference (default) or noisy (Noise2Noise)")
     p.add_argument("--sampling", choices=("importance", "uniform"), help="crop placement (default importance)")
     p.add_argument("--spp", type=int, nargs=2, metavar=("LO", "HI"), help="random input spp range (default 2 8 for sample models)")

@@ -122,6 +122,9 @@ class TrainConfig:
     """``cpu``, ``cuda`` or ``auto`` (CUDA when available)."""
     workers: int = 2
     """Data-loader worker processes per training process (0 = read in the training process)."""
+    threads: int = 0
+    """Torch intra-op threads of each training process (0 = torch's default). On a small machine
+    shared with loader workers, 1 avoids OpenMP threads spinning against each other."""
     val_every: int = 200
     """Validate on the ``val`` split every this many steps and at the end (0 = only at the end)."""
     val_images: int | None = 8
@@ -193,7 +196,7 @@ class TrainConfig:
 
 
 #: Settings that do not change what is computed: a resume may change them freely.
-RUNTIME_FIELDS = frozenset({"data", "device", "workers", "val_every", "val_images", "checkpoint_every", "keep_every", "progress"})
+RUNTIME_FIELDS = frozenset({"data", "device", "workers", "threads", "val_every", "val_images", "checkpoint_every", "keep_every", "progress"})
 
 
 def manifest_hash(data_dir: str | Path) -> str:

@@ -290,6 +290,8 @@ def train(
         on_step: called after every step with ``(steps_done, outcome)`` (tests, notebooks).
     """
     t_start = time.perf_counter()
+    if cfg.threads > 0:
+        torch.set_num_threads(cfg.threads)
     rank, world, local_rank = _dist_env()
     device = _device(cfg, local_rank)
     distributed = _init_distributed(device, world)
