@@ -186,3 +186,62 @@ def test_count_20_end_to_end(tmp_path: Path) -> None:
     assert kinds == {"indoor", "outdoor"}
     (tmp_path / "timing.json").write_text(json.dumps({"seconds": seconds}))
     print(f"\n--count 20 at 32x32, 4 spp, reference 64 spp: {seconds:.1f} s")
+
+
+@pytest.fixture(scope="module")
+def views_ds(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    root = tmp_path_factory.mktemp("views") / "data"
+    assert _run("--count", "2", "--views", "3", "--out", str(root), *TINY) == 0
+    return root
+
+
+def test_views_share_scene_and_split_not_camera(views_ds: Path) -> None:
+    """Catches: views of one scene split across train/val/test (leakage), or views that are one
+    picture three times (same camera or same seed)."""
+    entries = read_manifest(views_ds)
+    assert [e["path"] for e in entries] == [f"proc_{i:06d}/view_{v:03d}" for i in range(2) for v in range(3)]
+    assert [e["view"] for e in entries] == [0, 1, 2] * 2
+    for i in range(2):
+        mine = [e for e in entries if e["scene"] == f"proc_{i:06d}"]
+        assert len(mine) == 3 and len({e["split"] for e in mine}) == 1
+        imgs = [read_image(views_ds / e["path"]) for e in mine]
+        assert len({img.meta.extra["procedural"]["seed"] for img in imgs}) == 1
+        assert len({img.meta.seed for img in imgs}) == 3
+        cams = [np.asarray(img.meta.extra["camera_to_world"]) for img in imgs]
+        assert not np.allclose(cams[0], cams[1]) and not np.allclose(cams[1], cams[2])
+        rads = [img.read_noisy(["radiance"])["radiance"] for img in imgs]
+        assert all(np.isfinite(r).all() and r.mean() > 0 for r in rads)
+        assert not np.array_equal(rads[0], rads[1])
+    assert len(Dataset(views_ds)) == 6
+
+
+def test_view_rendered_alone_is_the_same_image(views_ds: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Catches: a view's camera or pixels depending on which other views the process rendered
+    before it (a resumed run or another shard would then write a different image)."""
+    root = tmp_path / "v"
+    shutil.copytree(views_ds, root)
+    shutil.rmtree(root / "proc_000001" / "view_002")
+    capsys.readouterr()
+    assert _run("--count", "2", "--views", "3", "--out", str(root), *TINY) == 0
+    assert "rendered 1 image(s)" in capsys.readouterr().out
+    a, b = root / "proc_000001" / "view_002", views_ds / "proc_000001" / "view_002"
+    np.testing.assert_array_equal(_radiance(a), _radiance(b))
+    assert read_image(a).meta.extra["camera_to_world"] == read_image(b).meta.extra["camera_to_world"]
+    assert read_manifest(root) == read_manifest(views_ds)
+
+
+def test_views_with_frames_and_older_datasets_are_refused(ds: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Catches: resuming a dataset drawn by the previous scene pipeline (its images would mix with
+    differently exposed ones), and an unsupported views x frames combination accepted."""
+    capsys.readouterr()
+    assert _run("--count", "1", "--views", "2", "--frames", "2", "--out", str(tmp_path / "vf"), *TINY) == 1
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "views" in err
+    old = tmp_path / "old"
+    shutil.copytree(ds, old)
+    cfg = json.loads((old / "dataset.json").read_text())
+    del cfg["generator"], cfg["views"]
+    (old / "dataset.json").write_text(json.dumps(cfg))
+    assert _run("--count", "3", "--out", str(old), *TINY) == 1
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "generator" in err

@@ -266,3 +266,79 @@ def test_generate_deterministic_and_checked() -> None:
     assert 10 <= a.info["objects"] + a.info["furniture"] <= 12 + 25
     assert 0.05 <= a.info["preview"]["median"] <= 0.5
     assert a.info["preview"]["object_fraction"] >= 0.08
+
+
+# ---------------------------------------------------------------- views and kernel reuse
+
+
+@pytest.mark.render
+@pytest.mark.parametrize("kind", P.KINDS)
+def test_view_cameras_stay_in_the_scene(kind: str) -> None:
+    """Catches: extra views placed outside the room, inside furniture or far from the objects
+    (outdoor objects only exist around the drawn view), or views that are not reproducible."""
+    from mcdenoise.render.procedural_views import view_camera
+
+    ps = P._draw(21, kind, 16, 16, (10, 12))
+    origin, target, _ = ps.camera_path
+    for s in range(10):
+        m = view_camera(ps, np.random.default_rng(s))
+        np.testing.assert_array_equal(m, view_camera(ps, np.random.default_rng(s)))
+        pos = m[:3, 3]
+        assert not np.allclose(pos, origin)
+        if kind == "indoor":
+            hx, hz, h = ps.room
+            assert abs(pos[0]) < hx and abs(pos[2]) < hz and 0 < pos[1] < h
+        else:
+            d0 = np.linalg.norm((origin - target)[[0, 2]])
+            d = np.linalg.norm((pos - target)[[0, 2]])
+            assert 0.7 * d0 <= d <= 1.3 * d0 and 0.5 <= pos[1] <= 3.0
+            # Looks at the drawn target (within a few degrees).
+            to_t = (target - pos) / np.linalg.norm(target - pos)
+            assert float(to_t @ m[:3, 2]) > 0.95
+
+
+@pytest.mark.render
+def test_new_view_and_exposure_reuse_the_compiled_kernel() -> None:
+    """Catches: the camera pose or the emitter rescale reaching the kernel as a literal, so that
+    every view (and the exposure fix after the preview) compiles the whole scene again: the cost
+    the issue measured (seconds per image)."""
+    import drjit as dr
+
+    from mcdenoise.render.api import RenderSettings, render_samples
+    from mcdenoise.render.procedural_views import set_camera, view_camera
+
+    settings = RenderSettings(spp=2, ref_spp=0, width=16, height=16, seed=3)
+    was = dr.flag(dr.JitFlag.KernelHistory)
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        dr.kernel_history()  # drop older entries
+        # Indoor: no sunsky, whose scale Mitsuba bakes into the kernel (documented exception).
+        ps = P.generate(5, kind="indoor", width=16, height=16, objects=(10, 12), settings=settings, keep_loaded=True)
+        assert any((k.get("operation_count") or 0) > 1000 for k in dr.kernel_history())  # the preview compiled
+        render_samples(ps.loaded, settings)  # after the emitter rescale
+        set_camera(ps.loaded, view_camera(ps, np.random.default_rng(0)))
+        render_samples(ps.loaded, settings)  # another view
+        big = [k for k in dr.kernel_history() if (k.get("operation_count") or 0) > 1000]
+        assert len(big) >= 2 and all(k["cache_hit"] for k in big), [(k["operation_count"], k["cache_hit"]) for k in big]
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, was)
+
+
+@pytest.mark.render
+def test_emitters_rescaled_in_place_match_a_fresh_load() -> None:
+    """Catches: the in-place exposure fix missing an emitter kind or scaling it differently from
+    the rescaled dict that meta.json describes."""
+    from mcdenoise.render.api import RenderSettings, render_samples
+
+    settings = RenderSettings(spp=2, ref_spp=0, width=12, height=12, seed=1, channels=("radiance",))
+    for seed, kind in ((5, "indoor"), (2, "outdoor")):
+        ps = P.generate(seed, kind=kind, width=12, height=12, objects=(10, 10), settings=settings, keep_loaded=True)
+        assert ps.info["emitter_scale"] != 1.0
+        a = render_samples(ps.loaded, settings)[0]["radiance"]
+        ps.loaded = None
+        gc.collect()
+        fresh = P.load_procedural(ps, 12, 12)
+        b = render_samples(fresh, settings)[0]["radiance"]
+        del fresh
+        gc.collect()
+        np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-7)

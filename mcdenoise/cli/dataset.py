@@ -1,12 +1,15 @@
 """Render a procedural training dataset with a scene-level split.
 
     mcdenoise dataset --count N --out DIR [--spp 8] [--ref-spp 1024] [--size 128] [--seed S]
-                      [--shard i/n] [--frames K] [--kind indoor|outdoor] [--max-depth 6]
+                      [--shard i/n] [--frames K | --views K] [--kind indoor|outdoor] [--max-depth 6]
+                      [--variant auto|llvm_ad_rgb|cuda_ad_rgb]
     mcdenoise dataset --merge --out DIR
 
 A rerun with the same options resumes: finished image folders are kept, leftovers of a killed run
 are removed. Shards (``--shard i/n``, e.g. one per array job) render disjoint images; copy their
-folders into one DIR and run ``--merge`` to rebuild the manifest.
+folders into one DIR and run ``--merge`` to rebuild the manifest. ``--views K`` renders K camera
+views of each scene from one scene load (its kernels compile once): the cheap way to more images.
+Mitsuba's CUDA variant is used where a GPU is present (``--variant`` overrides).
 """
 
 from __future__ import annotations
@@ -64,6 +67,11 @@ def add_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--shard", default="0/1", help="render only scenes with index %% n == i (default 0/1)")
     p.add_argument("--frames", type=int, default=1,
                    help="frames per scene along a camera path, with position and motion layers (default 1)")
+    p.add_argument("--views", type=int, default=1,
+                   help="camera views per scene, each its own image in the scene's split; kernels compile once per "
+                        "scene (default 1)")
+    p.add_argument("--variant", choices=("auto", "llvm_ad_rgb", "cuda_ad_rgb"), default="auto",
+                   help="Mitsuba variant: auto = cuda_ad_rgb when a GPU is present, else llvm_ad_rgb (default auto)")
     p.add_argument("--kind", choices=("indoor", "outdoor"), default=None, help="only this kind of scene (default both)")
     p.add_argument("--max-depth", type=int, default=6, help="path depth of input and reference (default 6)")
     p.add_argument("--objects", default="10-50", help="MIN-MAX objects per scene (default 10-50)")
@@ -85,12 +93,15 @@ def run(args: argparse.Namespace) -> int:
         return 0
     if args.count is None:
         raise SceneError("--count N is required (or --merge to rebuild the manifest)")
+    from mcdenoise.render._mitsuba import set_variant
+
+    set_variant(args.variant)
     w, h = parse_size(args.size)
     shard, shards = parse_shard(args.shard)
     cfg = DatasetConfig(
         count=args.count, seed=args.seed, spp=args.spp, ref_spp=args.ref_spp, width=w, height=h,
         frames=args.frames, max_depth=args.max_depth, kind=args.kind, fractions=parse_split(args.split),
-        objects=parse_objects(args.objects),
+        objects=parse_objects(args.objects), views=args.views,
     )
     summary = render_dataset(args.out, cfg, shard=shard, shards=shards, progress=not args.no_progress,
                              log=lambda s: print(s, file=sys.stderr))

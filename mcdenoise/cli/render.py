@@ -64,6 +64,8 @@ def add_parser(p: argparse.ArgumentParser) -> None:
                    help="comma-separated per-sample channels to keep (default: all; radiance always)")
     p.add_argument("--position", action="store_true", help="also store per-pixel world positions in noisy.exr")
     p.add_argument("--overwrite", action="store_true", help="replace an existing image folder")
+    p.add_argument("--variant", choices=("auto", "llvm_ad_rgb", "cuda_ad_rgb"), default="auto",
+                   help="Mitsuba variant: auto = cuda_ad_rgb when a GPU is present, else llvm_ad_rgb (default auto)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -79,6 +81,9 @@ def run(args: argparse.Namespace) -> int:
         raise SceneError("no scene given (a Mitsuba 3 XML file or a built-in name; see --list)")
     if args.out is None:
         raise SceneError("--out DIR is required")
+    from mcdenoise.render._mitsuba import set_variant
+
+    set_variant(args.variant)
     size = parse_size(args.size) if args.size else None
     defines = parse_defines(args.defines)
     channels = tuple(c.strip() for c in args.channels.split(",") if c.strip()) if args.channels else None

@@ -34,7 +34,6 @@ Motion is not part of the Mitsuba dict (Mitsuba 3 has no moving shapes): it is i
 
 from __future__ import annotations
 
-import copy
 import gc
 import hashlib
 import math
@@ -57,6 +56,7 @@ __all__ = [
     "generate",
     "generate_scene",
     "preview_stats",
+    "load_procedural",
     "scene_digest",
     "look_at",
 ]
@@ -281,6 +281,7 @@ class _Builder:
     objects: list[str] = field(default_factory=list)  # ids of random objects and furniture
     emitters: list[str] = field(default_factory=list)
     extents: dict[str, tuple[np.ndarray, float]] = field(default_factory=dict)  # id -> centre, radius
+    room: tuple[float, float, float] | None = None  # indoor: half width (x), half depth (z), height
 
     def add(self, key: str, value: Any) -> None:
         if key in self.scene:
@@ -374,6 +375,7 @@ def _indoor(b: _Builder, n_objects: int) -> _Camera:
     rng = b.rng
     w, dpt, h = rng.uniform(4, 10), rng.uniform(4, 10), rng.uniform(2.5, 4.0)
     hx, hz = w / 2, dpt / 2
+    b.room = (float(hx), float(hz), float(h))
     wall_mat = _material(b.rng, b.materials, b.textures, kind=str(rng.choice(["diffuse", "roughplastic"])))
     floor_mat = _material(b.rng, b.materials, b.textures, kind=str(rng.choice(["diffuse", "roughplastic", "principled"])))
     ceil_mat = {"type": "diffuse", "reflectance": {"type": "rgb", "value": rng.uniform(0.5, 0.9, 3).tolist()}}
@@ -578,6 +580,13 @@ class ProceduralScene:
         camera_path: (origin, target, up) used to build sequences around this view.
         info: summary for meta.json: material/texture/shape kinds counted, object and light count,
             preview statistics, emitter scale applied, rejected drawings.
+        extents: (centre (3,), radius) of every random object and furniture piece, so that other
+            views (:func:`view_camera`) keep clear of them.
+        room: indoor scenes: (half width along x, half depth along z, height); None outdoors.
+        loaded: the Mitsuba scene loaded at the film size, camera made opaque and emitters
+            already rescaled, when :func:`generate` was asked to keep it (else None). Rendering
+            this very object again reuses the kernels its preview compiled; a fresh load of the
+            same dict would compile them all again.
     """
 
     scene: dict
@@ -596,6 +605,9 @@ class ProceduralScene:
     object_motion: dict[str, list[float]]
     camera_path: tuple[np.ndarray, np.ndarray, np.ndarray]
     info: dict
+    extents: list[tuple[np.ndarray, float]] = field(default_factory=list)
+    room: tuple[float, float, float] | None = None
+    loaded: Any = None
 
 
 def _draw(
@@ -664,6 +676,8 @@ def _draw(
         object_motion=obj_motion,
         camera_path=(cam.origin.copy(), cam.target.copy(), cam.up.copy()),
         info=info,
+        extents=[(c.copy(), float(r)) for c, r in b.extents.values()],
+        room=b.room,
     )
 
 
@@ -690,26 +704,44 @@ class PreviewStats:
         return None
 
 
-def preview_stats(ps: ProceduralScene, *, size: int = PREVIEW_SIZE, spp: int = PREVIEW_SPP, seed: int = 0) -> PreviewStats:
-    """Render ``ps`` tiny (long side ``size``) with Mitsuba's ``path`` at its static pose and
-    measure luminance statistics, plus object coverage from one ray per pixel centre."""
+def preview_stats(
+    ps: ProceduralScene,
+    *,
+    size: int = PREVIEW_SIZE,
+    spp: int = PREVIEW_SPP,
+    seed: int = 0,
+    scene: Any = None,
+    settings: Any = None,
+    record_position: bool = False,
+) -> PreviewStats:
+    """Render ``ps`` cheaply with our integrator and measure luminance statistics, plus object
+    coverage from one ray per pixel centre.
+
+    Standalone (``scene``/``settings`` None): the dict is loaded with its film shrunk to ``size``
+    pixels on the long side and rendered at ``spp``. The dataset instead passes its loaded
+    ``scene`` and the input image's own :class:`~mcdenoise.render.api.RenderSettings` (size, spp,
+    motion), so that the preview compiles exactly the kernel the input then reuses: the check
+    costs one input-sized trace, not a compilation of its own. ``seed`` replaces the settings'
+    seed (the preview's noise is independent of the input's).
+    """
+    from dataclasses import replace
+
+    from mcdenoise.render.api import RenderSettings, render_samples
+
     mi = pm.mitsuba_module()
-    scene = dict(ps.scene)
-    sensor = copy.copy(scene["sensor"])
-    film = dict(sensor["film"])
-    w, h = film["width"], film["height"]
-    k = size / max(w, h)
-    film["width"], film["height"] = max(1, round(w * k)), max(1, round(h * k))
-    sensor["film"] = film
-    scene["sensor"] = sensor
-    try:
-        loaded = mi.load_dict(scene)
-    except Exception as e:  # noqa: BLE001 - Mitsuba raises RuntimeError with a long message
-        raise SceneError(f"procedural scene (seed {ps.drawn_seed}) does not load: {str(e).splitlines()[0]}") from None
-    integrator = mi.load_dict({"type": "path", "max_depth": 6})
-    img = np.array(mi.render(loaded, integrator=integrator, spp=spp, seed=seed), dtype=np.float64)[..., :3]
+    if settings is None:
+        film = ps.scene["sensor"]["film"]
+        w, h = film["width"], film["height"]
+        k = size / max(w, h)
+        settings = RenderSettings(spp=spp, ref_spp=0, width=max(1, round(w * k)), height=max(1, round(h * k)), max_depth=6)
+    settings = replace(settings, seed=int(seed))
+    if scene is None:
+        scene = load_procedural(ps, settings.width, settings.height)
+    arrays, _ = render_samples(scene, settings, record_position=record_position)
+    img = arrays["radiance"].mean(axis=0, dtype=np.float64).transpose(1, 2, 0)
+    del arrays
     lum = img @ np.array([0.2126, 0.7152, 0.0722])
-    is_obj = _object_mask(mi, loaded, img.shape[1], img.shape[0])
+    is_obj = _object_mask(mi, scene, settings.width, settings.height)
     finite = bool(np.isfinite(img).all())
     mean = float(lum.mean()) if finite else 0.0
     return PreviewStats(
@@ -721,16 +753,30 @@ def preview_stats(ps: ProceduralScene, *, size: int = PREVIEW_SIZE, spp: int = P
     )
 
 
+def load_procedural(ps: ProceduralScene, width: int, height: int) -> Any:
+    """Load ``ps.scene`` at ``width`` x ``height``; SceneError naming the seed when it fails."""
+    from mcdenoise.render.api import load_scene
+
+    try:
+        return load_scene(ps.scene, width=width, height=height)
+    except SceneError as e:
+        raise SceneError(f"procedural scene (seed {ps.drawn_seed}) does not load: {e}") from None
+
+
 def _object_mask(mi: Any, loaded: Any, width: int, height: int) -> np.ndarray:
     """(height, width) bool: the ray through the pixel centre first hits a random object or
-    furniture (shapes compared by their Dr.Jit registry ids, one vectorised ray cast)."""
+    furniture (shapes compared by their Dr.Jit registry ids, one vectorised ray cast).
+
+    A preliminary intersection is enough to know the shape, and its kernel is tiny (a full
+    ``ray_intersect`` evaluates textures and frames of every material).
+    """
     import drjit as dr
 
     sensor = loaded.sensors()[0]
     y, x = np.mgrid[0:height, 0:width]
     film_pos = mi.Point2f(((x.ravel() + 0.5) / width).astype(np.float32), ((y.ravel() + 0.5) / height).astype(np.float32))
     ray, _ = sensor.sample_ray(0.0, 0.5, film_pos, mi.Point2f(0.5, 0.5))
-    hit_ids = np.array(dr.reinterpret_array(mi.UInt32, loaded.ray_intersect(ray).shape))
+    hit_ids = np.array(dr.reinterpret_array(mi.UInt32, loaded.ray_intersect_preliminary(ray).shape))
     obj_ids = [
         int(np.array(dr.reinterpret_array(mi.UInt32, mi.ShapePtr(s)))[0])
         for s in loaded.shapes()
@@ -766,23 +812,39 @@ def generate(
     check: bool = True,
     max_attempts: int = MAX_ATTEMPTS,
     objects: tuple[int, int] = (MIN_OBJECTS, MAX_OBJECTS),
+    settings: Any = None,
+    record_position: bool = False,
+    keep_loaded: bool = False,
 ) -> ProceduralScene:
     """Draw a scene from ``seed``; with ``check``, re-draw rejected ones from derived seeds.
 
-    ``width``/``height`` only set the film in the dict (the renderer may override them).
-    ``objects`` is the (min, max) number of objects: indoor scenes count their furniture pieces
-    in it when there is room. JIT compilation time grows with it: every object's material
-    is compiled into the kernel separately. Raises SceneError when ``max_attempts`` drawings in
-    a row are rejected.
+    ``width``/``height`` set the film in the dict. ``objects`` is the (min, max) number of
+    objects: indoor scenes count their furniture pieces in it when there is room. JIT compilation
+    time grows with it: every object's material is compiled into the kernel separately. Raises
+    SceneError when ``max_attempts`` drawings in a row are rejected.
+
+    With ``keep_loaded`` the scene is loaded once at ``width`` x ``height`` (camera made opaque,
+    :func:`~mcdenoise.render.procedural_views.set_camera`), checked on that very object with the
+    render ``settings`` the caller will use (a RenderSettings, or a function of the drawn scene
+    returning one, e.g. to include its motion) and ``record_position``, so the preview compiles
+    the caller's kernel, and returned in :attr:`ProceduralScene.loaded` with its emitters
+    rescaled in place. Without it the preview is a small standalone render (``PREVIEW_SIZE``).
     """
+    from mcdenoise.render import procedural_views as pv
+
     reasons: list[str] = []
     for attempt in range(max_attempts):
         drawn = seed if attempt == 0 else derive_seed(seed, attempt)
         ps = _draw(drawn, kind, width, height, objects)
         ps.seed, ps.drawn_seed, ps.attempts = seed, drawn, attempt
+        if keep_loaded:
+            ps.loaded = load_procedural(ps, width, height)
+            pv.set_camera(ps.loaded, ps.camera_to_world)
         if not check:
             return ps
-        stats = preview_stats(ps)
+        pset = (settings(ps) if callable(settings) else settings) if keep_loaded else None
+        stats = preview_stats(ps, scene=ps.loaded, settings=pset,
+                              seed=derive_seed(drawn, 8) if keep_loaded else 0, record_position=record_position)
         problem = stats.problem()
         if problem is None:
             # Exposure: bring the median luminance into [0.05, 0.5] (random in log space); the
@@ -790,6 +852,8 @@ def generate(
             target = _loguniform(np.random.default_rng(derive_seed(drawn, 7)), 0.05, 0.5)
             k = target / stats.median
             _scale_emitters(ps.scene, k)
+            if ps.loaded is not None:
+                pv.scale_loaded_emitters(ps.loaded, ps.scene)
             ps.info.update(
                 preview={"mean": stats.mean * k, "median": target, "black_fraction": stats.black_fraction,
                          "object_fraction": stats.object_fraction},

@@ -6,6 +6,7 @@ Layout of a dataset folder ``DIR``::
     manifest.json             image entries with their scene-level split (rebuilt, atomically)
     proc_000000/              image 0 (one frame), an image folder of the data format
     proc_000001/frame_000/    image 1 of a sequence dataset (``frames > 1``): one folder per frame
+    proc_000002/view_001/     view 1 of scene 2 (``views > 1``): one folder per view
     ...
 
 Image ``i`` is drawn from ``derive_seed(seed, i)``, so any machine renders the same image ``i``:
@@ -17,6 +18,11 @@ scenes (:func:`mcdenoise.data.dataset.assign_splits`), so they do not change as 
 Every image folder is written under a hidden temporary name and renamed when complete; a killed
 job leaves only hidden ``.proc_*`` leftovers, which the next run of the same shard deletes before
 it renders the missing images. Finished folders are never rendered again.
+
+Cost: each new scene compiles its own kernels (seconds; see :mod:`mcdenoise.render.procedural_views`).
+A scene is therefore loaded once and everything is rendered from that one object: the rejection
+preview (same size, spp and motion as the input, so it compiles the input's kernel), every view
+(``views``, cameras set as opaque values) and every reference.
 """
 
 from __future__ import annotations
@@ -51,7 +57,13 @@ __all__ = [
 
 CONFIG_FILE = "dataset.json"
 _NAME = re.compile(r"^proc_(\d{6,})$")
-_FRAME = re.compile(r"^frame_(\d{3,})$")
+_SUB = re.compile(r"^(frame|view)_(\d{3,})$")
+#: Version of the drawing + preview + exposure pipeline. Images of one dataset must all come from
+#: one version (2: preview on the loaded scene with the input's settings; 1: 32-pixel preview
+#: with Mitsuba's path integrator); a dataset.json without the field was made by version 1.
+GENERATOR = 2
+#: Camera draws per extra view before falling back to the drawn (already checked) camera.
+VIEW_ATTEMPTS = 8
 
 
 @dataclass
@@ -69,6 +81,10 @@ class DatasetConfig:
         kind: ``"indoor"``, ``"outdoor"`` or None (both, half each on average).
         fractions: train/val/test fractions of the scene-level split.
         objects: (min, max) objects per scene (fewer compile faster; SBMC used up to 50).
+        views: camera views rendered per scene (each its own image, seed and check); the
+            scene's kernels compile once for all of them. Not combined with ``frames > 1``.
+        generator: version of the scene pipeline (:data:`GENERATOR`); recorded so that a rerun
+            never mixes images of two versions into one dataset.
     """
 
     count: int
@@ -82,15 +98,22 @@ class DatasetConfig:
     kind: str | None = None
     fractions: tuple[float, float, float] = (0.8, 0.1, 0.1)
     objects: tuple[int, int] = (10, 50)
+    views: int = 1
+    generator: int = GENERATOR
 
     def check(self) -> None:
         from mcdenoise.render.procedural import KINDS
 
         for name, lo, hi in (("count", 1, 10**7), ("spp", 1, 1 << 20), ("ref_spp", 0, 1 << 20),
-                             ("width", 1, 16384), ("height", 1, 16384), ("frames", 1, 100000), ("max_depth", 1, 1024)):
+                             ("width", 1, 16384), ("height", 1, 16384), ("frames", 1, 100000), ("max_depth", 1, 1024), ("views", 1, 10000)):
             v = getattr(self, name)
             if not isinstance(v, (int, np.integer)) or not lo <= v <= hi:
                 raise SceneError(f"dataset: {name}={v!r} is out of range [{lo}, {hi}]")
+        if self.views > 1 and self.frames > 1:
+            raise SceneError("dataset: views > 1 and frames > 1 cannot be combined (a sequence is one view)")
+        if self.generator != GENERATOR:
+            raise SceneError(f"dataset: made by scene pipeline version {self.generator}; this mcdenoise renders "
+                             f"version {GENERATOR} (render a new dataset)")
         if self.kind is not None and self.kind not in KINDS:
             raise SceneError(f"dataset: kind {self.kind!r} is not one of {', '.join(KINDS)}")
         lo, hi = self.objects
@@ -111,6 +134,7 @@ class DatasetConfig:
         if not isinstance(d, dict) or d.get("format") != "mcdenoise-procedural-dataset":
             raise FormatError(where, "not a procedural dataset config (format field)")
         names = {f.name for f in fields(cls)}
+        d = {"generator": 1, **d}  # written before the field existed
         try:
             cfg = cls(**{k: v for k, v in d.items() if k in names})
         except TypeError as e:
@@ -127,6 +151,8 @@ def scene_name(index: int) -> str:
 def image_paths(cfg: DatasetConfig, index: int) -> list[str]:
     """Folder paths (relative to the dataset root) of the frames of scene ``index``."""
     name = scene_name(index)
+    if cfg.views > 1:
+        return [f"{name}/view_{v:03d}" for v in range(cfg.views)]
     if cfg.frames == 1:
         return [name]
     return [f"{name}/frame_{f:03d}" for f in range(cfg.frames)]
@@ -174,19 +200,21 @@ def finished_paths(root: Path, cfg: DatasetConfig) -> set[str]:
         m = _NAME.match(entry.name)
         if not m or not entry.is_dir() or int(m.group(1)) >= cfg.count:
             continue
-        if cfg.frames == 1:
+        if cfg.frames == 1 and cfg.views == 1:
             if _is_finished(entry):
                 out.add(entry.name)
             continue
+        want, limit = ("view", cfg.views) if cfg.views > 1 else ("frame", cfg.frames)
         for sub in entry.iterdir():
-            fm = _FRAME.match(sub.name)
-            if fm and int(fm.group(1)) < cfg.frames and _is_finished(sub):
+            fm = _SUB.match(sub.name)
+            if fm and fm.group(1) == want and int(fm.group(2)) < limit and _is_finished(sub):
                 out.add(f"{entry.name}/{sub.name}")
     return out
 
 
 def clean_partial(root: Path, indices: list[int]) -> list[Path]:
-    """Delete hidden leftovers of killed runs (``.proc_000012.*``, ``proc_000012/.frame_003.*``)
+    """Delete hidden leftovers of killed runs (``.proc_000012.*``, ``proc_000012/.frame_003.*``,
+    ``proc_000012/.view_001.*``)
     that belong to ``indices`` only, so shards sharing a folder never touch each other's work."""
     mine = {scene_name(i) for i in indices}
     removed: list[Path] = []
@@ -221,9 +249,41 @@ def rebuild_manifest(root: str | Path, done: set[str] | None = None) -> Path:
         scene = path.split("/", 1)[0]
         e: dict[str, Any] = {"path": path, "scene": scene, "split": splits[scene], "index": int(scene[5:])}
         if "/" in path:
-            e["frame"] = int(path.rsplit("_", 1)[1])
+            kind, num = path.rsplit("/", 1)[1].split("_")
+            e[kind] = int(num)
         entries.append(e)
     return write_manifest(root, entries)
+
+
+def _settings(cfg: DatasetConfig, seed: int, *, motion: dict | None = None, camera_end: Any = None) -> Any:
+    from mcdenoise.render import RenderSettings
+
+    return RenderSettings(spp=cfg.spp, ref_spp=cfg.ref_spp, width=cfg.width, height=cfg.height, seed=seed,
+                          max_depth=cfg.max_depth, object_motion=motion or None, camera_to_world_end=camera_end)
+
+
+def _view(cfg: DatasetConfig, ps: Any, scene_seed: int, view: int, rejected: list[str]) -> tuple[np.ndarray, Any]:
+    """Camera (4x4) and render settings of view ``view`` >= 1 of the drawn scene ``ps``.
+
+    Camera ``attempt`` of the view is drawn from ``derive_seed(scene_seed, 3, view, attempt)``, so
+    a view never depends on which other views were rendered (shards, resume). Each is checked with
+    the same preview as the scene (on the loaded scene, same kernel); after VIEW_ATTEMPTS
+    rejections the drawn camera is used with the view's own seed.
+    """
+    from mcdenoise.render.procedural import derive_seed, preview_stats
+    from mcdenoise.render.procedural_views import set_camera, view_camera, view_motion_end
+
+    motion = {k: tuple(v) for k, v in ps.object_motion.items()}
+    for attempt in range(VIEW_ATTEMPTS):
+        c2w = view_camera(ps, np.random.default_rng(derive_seed(scene_seed, 3, view, attempt)))
+        settings = _settings(cfg, derive_seed(scene_seed, view, 1), motion=motion, camera_end=view_motion_end(ps, c2w))
+        set_camera(ps.loaded, c2w)
+        problem = preview_stats(ps, scene=ps.loaded, settings=settings, seed=derive_seed(scene_seed, 9, view, attempt)).problem()
+        if problem is None:
+            return c2w, settings
+        rejected.append(f"camera {attempt}: {problem}")
+    c2w = np.asarray(ps.camera_to_world)
+    return c2w, _settings(cfg, derive_seed(scene_seed, view, 1), motion=motion, camera_end=ps.camera_to_world_end)
 
 
 def render_procedural_image(
@@ -234,18 +294,31 @@ def render_procedural_image(
     *,
     on_image: Callable[[str], None] | None = None,
 ) -> None:
-    """Draw scene ``index`` and render its frames listed in ``todo`` (relative paths)."""
-    from mcdenoise.render import RenderSettings, load_scene, render_image
+    """Draw scene ``index`` and render its frames or views listed in ``todo`` (relative paths).
+
+    The scene is loaded once (by :func:`~mcdenoise.render.procedural.generate`, which checks it
+    with the input's own settings); all views, frames and references render from that object.
+    """
+    from mcdenoise.render import render_image
     from mcdenoise.render.procedural import derive_seed, generate
+    from mcdenoise.render.procedural_views import set_camera
     from mcdenoise.render.sequence import camera_path, motion_vectors, primary_hits
 
     scene_seed = derive_seed(cfg.seed, index)
-    t0 = time.perf_counter()
-    ps = generate(scene_seed, kind=cfg.kind, width=cfg.width, height=cfg.height, objects=tuple(cfg.objects))
-    t1 = time.perf_counter()
-    scene = load_scene(ps.scene, width=cfg.width, height=cfg.height)
-    t2 = time.perf_counter()
     name = scene_name(index)
+    t0 = time.perf_counter()
+    if cfg.frames == 1:
+        # View 0's settings carry the drawn motion, known only once the scene is drawn.
+        def view0(ps: Any) -> Any:
+            return _settings(cfg, derive_seed(scene_seed, 0, 1), motion={k: tuple(v) for k, v in ps.object_motion.items()},
+                             camera_end=ps.camera_to_world_end)
+        ps = generate(scene_seed, kind=cfg.kind, width=cfg.width, height=cfg.height, objects=tuple(cfg.objects),
+                      settings=view0, keep_loaded=True)
+    else:
+        ps = generate(scene_seed, kind=cfg.kind, width=cfg.width, height=cfg.height, objects=tuple(cfg.objects),
+                      settings=_settings(cfg, derive_seed(scene_seed, 0, 1)), record_position=True, keep_loaded=True)
+    t1 = time.perf_counter()
+    scene = ps.loaded
     meta: dict[str, Any] = {
         "procedural": {
             "dataset_seed": cfg.seed,
@@ -254,21 +327,30 @@ def render_procedural_image(
             "drawn_seed": ps.drawn_seed,
             "attempts": ps.attempts,
             **ps.info,
-            # Drawing + preview check (its JIT compilation included), and the scene load.
+            # Drawing + scene load + preview check (which compiles the input's kernels).
             "generate_seconds": round(t1 - t0, 3),
-            "load_seconds": round(t2 - t1, 3),
         }
     }
     if cfg.frames == 1:
-        settings = RenderSettings(
-            spp=cfg.spp, ref_spp=cfg.ref_spp, width=cfg.width, height=cfg.height,
-            seed=derive_seed(scene_seed, 0, 1), max_depth=cfg.max_depth,
-            object_motion={k: tuple(v) for k, v in ps.object_motion.items()} or None,
-            camera_to_world_end=ps.camera_to_world_end,
-        )
-        render_image(scene, root / name, settings, scene_name=name, extra_meta=meta)
-        if on_image is not None:
-            on_image(name)
+        for v, rel in enumerate(image_paths(cfg, index)):
+            if rel not in todo:
+                continue
+            tv = time.perf_counter()
+            rejected: list[str] = []
+            if v == 0:
+                c2w = np.asarray(ps.camera_to_world)
+                settings = view0(ps)
+            else:
+                c2w, settings = _view(cfg, ps, scene_seed, v, rejected)
+            set_camera(scene, c2w)
+            view_meta = dict(meta)
+            if cfg.views > 1:
+                view_meta["view"] = {"index": v, "views": cfg.views, "rejected_cameras": rejected,
+                                     "check_seconds": round(time.perf_counter() - tv, 3)}
+            render_image(scene, root / rel, settings, scene_name=name,
+                         extra_meta={**view_meta, "camera_to_world": c2w.tolist()})
+            if on_image is not None:
+                on_image(rel)
         return
     # A sequence: static scene, camera along a smooth path (in-frame motion blur is off so that
     # frames are consistent and motion vectors describe all the change between frames).
@@ -280,19 +362,20 @@ def render_procedural_image(
     for f, rel in enumerate(image_paths(cfg, index)):
         if rel not in todo:
             continue
-        settings = RenderSettings(
-            spp=cfg.spp, ref_spp=cfg.ref_spp, width=cfg.width, height=cfg.height,
-            seed=derive_seed(scene_seed, f, 1), max_depth=cfg.max_depth,
-        )
+        settings = _settings(cfg, derive_seed(scene_seed, f, 1))
         prev = path[f - 1] if f > 0 else path[f]
         if f == 0:  # no previous frame: no motion (exactly)
             motion = np.zeros((2, cfg.height, cfg.width), np.float32)
         else:
             pos, hit, dirs = primary_hits(scene, path[f], ps.fov, cfg.width, cfg.height)
             motion = motion_vectors(pos, hit, dirs, prev, ps.fov, cfg.width, cfg.height)
-        frame_meta = {**meta, "frame": f, "frames": cfg.frames, "camera_to_world_prev": np.asarray(prev).tolist()}
+        frame_meta = {**meta, "frame": f, "frames": cfg.frames, "camera_to_world_prev": np.asarray(prev).tolist(),
+                      "camera_to_world": np.asarray(path[f]).tolist()}
+        # The camera is set here as an opaque value rather than through render_image's
+        # camera_to_world (a literal): every frame then reuses the first frame's kernels.
+        set_camera(scene, path[f])
         render_image(scene, root / rel, settings, scene_name=name, extra_meta=frame_meta,
-                     camera_to_world=path[f], record_position=True, extra_noisy={"motion": motion})
+                     record_position=True, extra_noisy={"motion": motion})
         if on_image is not None:
             on_image(rel)
 
