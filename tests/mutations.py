@@ -275,6 +275,12 @@ class Outcome:
     seconds: float = 0.0
 
 
+def _short(failed: list[str], keep: int = 4) -> str:
+    """The first ``keep`` failing test ids, without the ``tests/`` prefix."""
+    names = [f.removeprefix("tests/") for f in failed]
+    return ", ".join(names[:keep]) + (f" (+{len(names) - keep} more)" if len(names) > keep else "")
+
+
 def run_pytest(copy: Path, tests: list[str], *, first_failure: bool, timeout: float, threads: int) -> Outcome:
     cmd = [sys.executable, "-m", "pytest", "-q", "-rfE", "-p", "no:cacheprovider", "--no-header", *tests]
     if first_failure:
@@ -290,9 +296,9 @@ def run_pytest(copy: Path, tests: list[str], *, first_failure: bool, timeout: fl
     if proc.returncode == 0:
         return Outcome("SURVIVED", summary, dt)
     if proc.returncode == 1 and failed:
-        return Outcome("KILLED", f"{len(failed)} failed: " + ", ".join(failed), dt)
+        return Outcome("KILLED", f"{len(failed)} failed: " + _short(failed), dt)
     if proc.returncode == 2 and failed:  # collection errors: the mutated module does not import
-        return Outcome("KILLED", "collection error: " + ", ".join(failed), dt)
+        return Outcome("KILLED", "collection error: " + _short(failed), dt)
     return Outcome("ERROR", f"pytest exit {proc.returncode}: {summary}\n{proc.stdout[-2000:]}{proc.stderr[-2000:]}", dt)
 
 
