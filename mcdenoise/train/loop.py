@@ -136,6 +136,10 @@ class Trainer:
     def __init__(self, model: Denoiser, cfg: TrainConfig, device: torch.device, distributed: bool = False) -> None:
         self.model, self.cfg, self.device = model, cfg, device
         self.loss = get_loss(cfg.loss or "l1")
+        if distributed and device.type == "cuda":
+            # BatchNorm (WSKP's RepVGG blocks) would otherwise normalise by per-rank statistics;
+            # SyncBatchNorm exists only on GPUs, so CPU ranks keep per-rank statistics (docs say so).
+            nn.SyncBatchNorm.convert_sync_batchnorm(model)
         self.objective: nn.Module = _Objective(model)
         if distributed:
             self.objective = nn.parallel.DistributedDataParallel(
