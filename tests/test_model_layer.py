@@ -354,3 +354,23 @@ def test_row_banded_inference_matches_whole_image(name: str, monkeypatch: pytest
         four_rows = model(batch)
     assert rel_diff(banded, whole) <= 1e-12
     assert rel_diff(four_rows, whole) <= 1e-12
+
+
+@pytest.mark.parametrize("compositing", ["alpha", "weighted"])
+def test_compositing_gradcheck(compositing: str) -> None:
+    """Catches: a wrong gradient through the compositing (the log-weight folding, the in-place
+    exponentiation, the guarded divisions), float64 finite differences on a 3x3-kernel layer."""
+    model = build_model("layer", "small", kernel_size=3, compositing=compositing).double()
+    b, nl, h, w = 1, 2, 5, 4
+    g = torch.Generator().manual_seed(5)
+    logits = torch.randn(b, nl, 9, h, w, generator=g, dtype=torch.float64, requires_grad=True)
+    l_rad, l_w, l_n = _layer_sums(b, nl, h, w, torch.float64)
+    l_rad.requires_grad_(True)
+    l_w.requires_grad_(True)
+    l_n.requires_grad_(True)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # ~1000 tiny forwards: OpenMP start-up would dominate on a busy machine
+    try:
+        assert torch.autograd.gradcheck(lambda *x: model._filter(*x), (logits, l_rad, l_w, l_n))
+    finally:
+        torch.set_num_threads(threads)
