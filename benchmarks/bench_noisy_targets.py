@@ -1,7 +1,7 @@
 """Clean or noisy training targets at equal CPU time (issue 9 item 3).
 
-    python benchmarks/bench_noisy_targets.py WORK_DIR [--model kpcn] [--size 64] [--images A B C]
-        [--ref-spp 1024 128] [--steps 200] [--crop 24] [--batch 4] [--val 3]
+    python benchmarks/bench_noisy_targets.py WORK_DIR [--model kpcn] [--size 64] [--images 4 4 4 16]
+        [--steps 200] [--lr 1e-3] [--crop 24] [--batch 4] [--val 3]
 
 Three arms train the same model on the same procedural scenes (dataset seed 1, so arm X's first
 n scenes are arm Y's first n scenes) and are validated on the same separate val images (seed 100,
@@ -9,7 +9,7 @@ n scenes are arm Y's first n scenes) and are validated on the same separate val 
 
 * ``ref1024`` / ``ref128``: 8 spp input, reference.exr at that spp, ``--target reference``;
 * ``noisy``: 16 spp stored, no reference; each crop's input is 8 random samples and its target the
-  mean of the other 8 (``--target noisy``).
+  mean of the other 8 (``--target noisy``); ``noisy_more``: the same with more scenes.
 
 Cost is CPU seconds (user + system, children included, from ``getrusage``), so a loaded machine
 changes the wall time but much less the accounting. The budget is what ``ref1024`` spends: its
@@ -52,16 +52,19 @@ def _run(cmd: list[str], log: Path) -> float:
 
 
 def render_pool(work: Path, name: str, *, count: int, spp: int, ref_spp: int, seed: int, split: str, size: int) -> float:
-    """Render (or reuse) pool ``name``; returns its CPU seconds."""
+    """Render (or reuse) pool ``name`` of at least ``count`` images; returns CPU seconds per image."""
     stamp = work / f"t_{name}"
     if stamp.is_file() and (work / name / "manifest.json").is_file():
+        have = len(Dataset(work / name))
+        if have < count:
+            raise SystemExit(f"{work / name}: {have} images, {count} needed; delete it (and {stamp}) to re-render")
         parts = stamp.read_text().split()  # "<name> cpu <user> <sys> wall <s>" (also GNU time's -f)
-        return float(parts[2]) + float(parts[3])
+        return (float(parts[2]) + float(parts[3])) / have
     cpu = _run(BIN + ["dataset", "--out", str(work / name), "--count", str(count), "--spp", str(spp),
                       "--ref-spp", str(ref_spp), "--seed", str(seed), "--split", split, "--size", str(size),
                       "--no-progress"], work / f"log_{name}")
     stamp.write_text(f"{name} cpu {cpu:.2f} 0 wall 0\n")
-    return cpu
+    return cpu / count
 
 
 def arm_folder(work: Path, arm: str, pool: str, n: int) -> Path:
@@ -85,7 +88,7 @@ def train_arm(work: Path, arm: str, data: Path, a: argparse.Namespace, steps: in
     cmd = BIN + ["train", "--model", a.model, "--data", str(data), "--out", str(run), "--steps", str(steps),
                  "--crop", str(a.crop), "--batch", str(a.batch), "--loss", "relmse", "--target", target,
                  "--workers", str(a.workers), "--val-every", "0", "--val-images", str(a.val), "--seed", str(a.seed),
-                 "--force", "--no-progress"]
+                 "--lr", str(a.lr), "--force", "--no-progress"]
     if a.model in ("kpcn", "dpcn"):
         cmd += ["--branch-fraction", "0"]
     cpu = _run(cmd, work / f"log_run_{arm}")
@@ -99,8 +102,10 @@ def main() -> None:
     p.add_argument("work", type=Path)
     p.add_argument("--model", default="kpcn")
     p.add_argument("--size", type=int, default=64)
-    p.add_argument("--images", type=int, nargs=3, default=[4, 8, 16], metavar=("REF1024", "REF128", "NOISY"))
+    p.add_argument("--images", type=int, nargs=4, default=[4, 4, 4, 16], metavar=("REF1024", "REF128", "NOISY", "NOISY_MORE"),
+                   help="train images per arm (noisy_more: the noisy arm with more scenes)")
     p.add_argument("--steps", type=int, default=200, help="training steps of the ref1024 arm (sets the budget)")
+    p.add_argument("--lr", type=float, default=1e-3, help="peak learning rate of every arm (short runs need more than the papers')")
     p.add_argument("--crop", type=int, default=24)
     p.add_argument("--batch", type=int, default=4)
     p.add_argument("--val", type=int, default=3, help="validation images (1024 spp references)")
@@ -114,27 +119,31 @@ def main() -> None:
         ("ref1024", "poolA", a.images[0], 8, 1024, "reference"),
         ("ref128", "poolB", a.images[1], 8, 128, "reference"),
         ("noisy", "poolC", a.images[2], 16, 0, "noisy"),
+        ("noisy_more", "poolC", a.images[3], 16, 0, "noisy"),
     ]
-    render = {arm: render_pool(a.work, pool, count=n, spp=spp, ref_spp=ref, seed=1, split="1,0,0", size=size)
-              for arm, pool, n, spp, ref, _ in arms}
+    # One pool per render setting, as large as its largest arm; an arm is charged its share.
+    pools: dict[str, tuple[int, int, int]] = {}
+    for _, pool, n, spp, ref, _ in arms:
+        pools[pool] = (max(n, pools.get(pool, (0,))[0]), spp, ref)
+    per_image = {}
+    for pool, (count, spp, ref) in pools.items():
+        per_image[pool] = render_pool(a.work, pool, count=count, spp=spp, ref_spp=ref, seed=1, split="1,0,0", size=size)
     results = {}
     cpu_per_step = None
-    budget = None
+    budget = 0.0
     for arm, pool, n, _, _, target in arms:
+        render = per_image[pool] * n
         data = arm_folder(a.work, arm, pool, n)
-        if cpu_per_step is None:
-            steps = a.steps
-        else:
-            steps = max(1, int((budget - render[arm]) / cpu_per_step))
+        steps = a.steps if cpu_per_step is None else max(1, int((budget - render) / cpu_per_step))
         cpu, last = train_arm(a.work, arm, data, a, steps, target)
         if cpu_per_step is None:
             cpu_per_step = cpu / steps
-            budget = render[arm] + cpu
-        results[arm] = {"images": n, "render_cpu_s": round(render[arm], 1), "steps": steps, "train_cpu_s": round(cpu, 1),
-                        "total_cpu_s": round(render[arm] + cpu, 1), "val_relmse": float(last["val_relmse"]),
+            budget = render + cpu
+        results[arm] = {"images": n, "render_cpu_s": round(render, 1), "steps": steps, "train_cpu_s": round(cpu, 1),
+                        "total_cpu_s": round(render + cpu, 1), "val_relmse": float(last["val_relmse"]),
                         "val_psnr": float(last["val_psnr"])}
         r = results[arm]
-        print(f"{arm:8s} images={n:3d} render={r['render_cpu_s']:7.1f}s steps={steps:5d} train={r['train_cpu_s']:7.1f}s "
+        print(f"{arm:10s} images={n:3d} render={r['render_cpu_s']:7.1f}s steps={steps:5d} train={r['train_cpu_s']:7.1f}s "
               f"total={r['total_cpu_s']:7.1f}s  val relMSE={r['val_relmse']:.4f}  PSNR={r['val_psnr']:.2f}", flush=True)
     (a.work / "results.json").write_text(json.dumps(results, indent=1) + "\n")
 
