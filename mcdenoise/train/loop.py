@@ -35,7 +35,7 @@ from mcdenoise.models.registry import Denoiser, build_model
 from mcdenoise.train.checkpoint import latest_checkpoint, load_checkpoint, prune_checkpoints, save_checkpoint, \
     state_dict_for_safetensors
 from mcdenoise.train.config import ConfigError, TrainConfig, check_resume_config, config_document, manifest_hash, read_config
-from mcdenoise.train.data import DataConfig, training_batches, validation_batches
+from mcdenoise.train.data import DataConfig, batch_source, training_batches, validation_batches
 from mcdenoise.train.losses import get_loss
 from mcdenoise.train.optim import StepOutcome, apply_gradients, build_optimizer, lr_at
 from mcdenoise.train.runlog import VAL_METRICS, MetricsLog, plot_loss
@@ -78,6 +78,7 @@ def _device(cfg: TrainConfig, local_rank: int) -> torch.device:
     if want == "cuda":
         if not torch.cuda.is_available():
             raise ConfigError("--device cuda: no CUDA device is available")
+        torch.cuda.set_device(local_rank)  # before the process group, so nccl binds the right GPU
         return torch.device("cuda", local_rank)
     if want != "cpu":
         raise ConfigError(f"device must be cpu, cuda or auto, got {cfg.device!r}")
@@ -208,9 +209,13 @@ class Trainer:
         self.model.train()
         return {k: v / len(batches) for k, v in sums.items()}
 
-    def state(self, step: int, skipped: int) -> dict[str, Any]:
+    def state(self, step: int, skipped: int, wall_s: float = 0.0) -> dict[str, Any]:
+        """Everything besides the weights that a resume needs (tensors, numbers and strings only).
+
+        ``wall_s``: training wall time up to this checkpoint, summed over resumed calls.
+        """
         st: dict[str, Any] = {"format": 1, "optimizer": self.optimizer.state_dict(), "rng_cpu": torch.get_rng_state(),
-                              "skipped": skipped}
+                              "skipped": skipped, "wall_s": float(wall_s)}
         if self.device.type == "cuda":
             st["rng_cuda"] = torch.cuda.get_rng_state(self.device)
         return st
@@ -260,11 +265,11 @@ def prepare_run_dir(out: Path, doc: dict[str, Any], *, resume: bool, force: bool
     return 0, True
 
 
-def _broadcast_start(start: int, ok: bool, distributed: bool) -> int:
+def _broadcast_start(start: int, ok: bool, distributed: bool, device: torch.device) -> int:
     """Share rank 0's start step (or its refusal) with every rank."""
     if not distributed:
         return start
-    t = torch.tensor([start, int(ok)], dtype=torch.int64)
+    t = torch.tensor([start, int(ok)], dtype=torch.int64, device=device)  # nccl needs CUDA tensors
     dist.broadcast(t, 0)
     if not t[1]:
         raise ConfigError("rank 0 refused the run folder (see its error)")
@@ -322,30 +327,49 @@ def _train(cfg: TrainConfig, out: Path, resume: bool, force: bool, on_step: Call
     if not Dataset(data_dir).images("train"):
         raise ConfigError(f"{data_dir}: no images in the train split")
     doc = config_document(cfg, model_config=_model_config_json(model), manifest_sha256=manifest_hash(data_dir), world_size=world)
+    # Check the data against the settings (crop larger than an image, spp out of range...) before
+    # the run folder exists, so a typo does not leave a run that then needs --force.
+    err: ConfigError | None = None
+    val_batches: list[dict[str, torch.Tensor]] = []
+    try:
+        batch_source(data_dir, model, data_config(cfg), rank=rank, world_size=world)
+        if rank == 0:
+            val_batches = validation_batches(data_dir, model, data_config(cfg), max_images=cfg.val_images)
+    except ValueError as e:
+        err = ConfigError(str(e))
+    if distributed:  # every rank stops if any rank cannot read its data
+        flag = torch.tensor([0 if err else 1], device=device)  # nccl reduces CUDA tensors only
+        dist.all_reduce(flag, op=dist.ReduceOp.MIN)
+        if not flag[0] and err is None:
+            err = ConfigError("another process refused the data (see its error)")
+    if err is not None:
+        raise err
 
     start, ok = 0, True
     if rank == 0:
         try:
             start, _ = prepare_run_dir(out, doc, resume=resume, force=force)
         except McDenoiseError:
-            _broadcast_start(0, False, distributed)
+            _broadcast_start(0, False, distributed, device)
             raise
-    start = _broadcast_start(start, ok, distributed)
+    start = _broadcast_start(start, ok, distributed, device)
 
     model.to(device)
     trainer = Trainer(model, cfg, device, distributed)
     skipped = 0
+    wall_before = 0.0  # wall time of earlier calls, up to the checkpoint resumed from
     if start > 0:
         ck = latest_checkpoint(out)
         assert ck is not None and ck.step == start
-        skipped = trainer.load_state(load_checkpoint(ck, model, device))
+        st = load_checkpoint(ck, model, device)
+        skipped = trainer.load_state(st)
+        wall_before = float(st.get("wall_s", 0.0))
     if start >= cfg.steps:
         if rank == 0:
             print(f"{out}: already trained for {start} steps", file=sys.stderr)
         return TrainResult(out, start, skipped, time.perf_counter() - t_start, {})
 
     log = MetricsLog(out, start) if rank == 0 else None
-    val_batches = validation_batches(data_dir, model, data_config(cfg), max_images=cfg.val_images) if rank == 0 else []
     batches: Iterator[dict[str, torch.Tensor]] = training_batches(
         data_dir, model, data_config(cfg), start_step=start, rank=rank, world_size=world, device=device
     )
@@ -369,7 +393,7 @@ def _train(cfg: TrainConfig, out: Path, resume: bool, force: bool, on_step: Call
             row: dict[str, Any] = {"step": done, "phase": trainer.phase(t), "loss": outcome.loss, "lr": lr_at(t, cfg),
                                    "grad_norm": outcome.grad_norm, "skipped": skipped, "crops_per_s": cfg.batch / dt,
                                    "s_per_step": dt, "spp": float(batch["spp"].float().mean()) if "spp" in batch else None,
-                                   "wall_s": now - t_start}
+                                   "wall_s": wall_before + now - t_start}
             if outcome.skipped:
                 print(f"step {done}: non-finite loss or gradient, update skipped ({skipped} so far)", file=sys.stderr)
             last = done == cfg.steps
@@ -378,7 +402,7 @@ def _train(cfg: TrainConfig, out: Path, resume: bool, force: bool, on_step: Call
                 row.update({f"val_{k}": v for k, v in val.items()})
             log.write(row)
             if done % cfg.checkpoint_every == 0 or last:
-                save_checkpoint(out, done, model, trainer.state(done, skipped))
+                save_checkpoint(out, done, model, trainer.state(done, skipped, wall_before + now - t_start))
                 prune_checkpoints(out, cfg.keep_every)
             if (cfg.val_every and done % cfg.val_every == 0) or last:
                 plot_loss(log.path, out / "loss.png")
@@ -398,7 +422,7 @@ def _train(cfg: TrainConfig, out: Path, resume: bool, force: bool, on_step: Call
             save_file(state_dict_for_safetensors(model), str(tmp),
                       metadata={"model": cfg.model, "preset": cfg.preset, "step": str(cfg.steps)})
         summary = {"model": cfg.model, "preset": cfg.preset, "steps": cfg.steps, "skipped": skipped, "device": str(device),
-                   "world_size": world, "wall_s_this_call": wall, "val": val}
+                   "world_size": world, "wall_s": wall_before + wall, "wall_s_this_call": wall, "val": val}
         with atomic_file(out / RESULT_FILE) as tmp:
             tmp.write_text(json.dumps(summary, indent=1) + "\n")
     return TrainResult(out, cfg.steps, skipped, wall, val)
