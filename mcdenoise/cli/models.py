@@ -11,6 +11,8 @@ def add_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--json", action="store_true", help="machine-readable output")
     p.add_argument("--preset", action="append", default=None,
                    help="only these presets (repeatable; default: all)")
+    p.add_argument("--model", action="append", default=None,
+                   help="only these models (repeatable; default: all registered)")
     p.add_argument("--no-flops", action="store_true", help="skip the FLOP count (faster)")
 
 
@@ -22,7 +24,15 @@ def run(args: argparse.Namespace) -> int:
     from mcdenoise.models.registry import list_models
 
     torch.manual_seed(0)
-    rows = [describe(e, args.preset, not args.no_flops) for e in list_models()]
+    entries = list_models()
+    if args.model:
+        unknown = sorted(set(args.model) - {e.name for e in entries})
+        if unknown:
+            print(f"mcdenoise models: unknown model(s) {', '.join(unknown)}; "
+                  f"registered: {', '.join(e.name for e in entries)}", file=sys.stderr)
+            return 2
+        entries = [e for e in entries if e.name in args.model]
+    rows = [describe(e, args.preset, not args.no_flops) for e in entries]
     if args.json:
         json.dump(rows, sys.stdout, indent=2)
         print()
@@ -31,13 +41,25 @@ def run(args: argparse.Namespace) -> int:
         print(f"{row['name']}  ({row['paper']})")
         if row["description"]:
             print(f"    {row['description']}")
+        width = max([8, *(len(p) for p in row["presets"])])
         for preset, info in row["presets"].items():
             flops = ""
             if "flops_per_pixel" in info:
                 at = f" at {info['flops_spp']} spp" if "flops_spp" in info else ""
-                flops = f", {info['flops_per_pixel'] / 1e6:.2f} MFLOP/pixel{at}"
-            print(f"    {preset:<8} {info['parameters']:>11,d} params{flops}, input: {info['input_kind']}")
+                flops = f", {_mflop(info['flops_per_pixel'])} MFLOP/pixel{at}"
+            form = ", training form" if "inference" in info else ""
+            print(f"    {preset:<{width}} {info['parameters']:>11,d} params{flops}, input: {info['input_kind']}{form}")
+            if "inference" in info:
+                inf = info["inference"]
+                flops = f", {_mflop(inf['flops_per_pixel'])} MFLOP/pixel" if "flops_per_pixel" in inf else ""
+                print(f"    {'':<{width}} {inf['parameters']:>11,d} params{flops}, inference form (re-parameterised)")
         first = next(iter(row["presets"].values()), None)
         if first is not None:
             print(f"    channels: {', '.join(first['channels'])}")
     return 0
+
+
+def _mflop(flops: float) -> str:
+    """MFLOP with 3 significant digits below 1 (WSKP's 0.0764 vs 0.0546), 2 decimals above."""
+    m = flops / 1e6
+    return f"{m:.3g}" if m < 1 else f"{m:,.2f}"

@@ -36,7 +36,12 @@ def flops_per_pixel(model: Denoiser, *, spp: int = FLOPS_SPP, size: int = FLOPS_
 
 
 def describe(entry: ModelEntry, presets: list[str] | None = None, with_flops: bool = True) -> dict[str, Any]:
-    """name, paper, description and, per preset: parameters, input kind, channels, FLOPs/pixel."""
+    """name, paper, description and, per preset: parameters, input kind, channels, FLOPs/pixel.
+
+    Models with a ``reparameterize()`` method (WSKP's RepVGG blocks fold into one conv each) have
+    a training form and a smaller inference form; the paper times the latter, so a preset of such
+    a model also gets ``"inference": {"parameters", "flops_per_pixel"}`` for the folded network.
+    """
     out: dict[str, Any] = {"name": entry.name, "paper": entry.paper, "description": entry.description,
                            "presets": {}}
     for preset in entry.presets:
@@ -52,5 +57,11 @@ def describe(entry: ModelEntry, presets: list[str] | None = None, with_flops: bo
             info["flops_per_pixel"] = flops_per_pixel(model)
             if model.input_kind == "samples":
                 info["flops_spp"] = FLOPS_SPP
+        if callable(getattr(model, "reparameterize", None)):
+            folded = entry.cls(entry.config(preset)).reparameterize()
+            inference: dict[str, Any] = {"parameters": count_parameters(folded)}
+            if with_flops:
+                inference["flops_per_pixel"] = flops_per_pixel(folded)
+            info["inference"] = inference
         out["presets"][preset] = info
     return out
