@@ -180,3 +180,16 @@ def test_resume_refuses_changed_settings() -> None:
     assert "lr" in str(err.value) and "\n" not in str(err.value)
     with pytest.raises(ConfigError, match="manifest"):
         check_resume_config(a, dict(b, manifest_sha256="y"), Path("run/config.json"))
+
+
+def test_cli_help_names_every_loss() -> None:
+    """Catches a loss added to the registry but missing from `mcdenoise train --help` (the parser
+    lists them by hand so that building it never imports torch)."""
+    import argparse
+
+    from mcdenoise.cli.train import add_parser
+
+    p = argparse.ArgumentParser()
+    add_parser(p)
+    help_text = next(a.help for a in p._actions if "--loss" in a.option_strings)
+    assert sorted(n.strip(" ,") for n in help_text.split("(")[0].replace(" or ", ", ").split(",")) == sorted(LOSSES)
