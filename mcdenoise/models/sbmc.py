@@ -158,27 +158,48 @@ class SBMC(Denoiser):
         (their units vary by scene: degrees, world units) and are broadcast to every sample.
         """
         cfg = self.config
-        parts = []
-        for name in cfg.channels:
-            x = batch[name]
+        xs = [batch[name] for name in cfg.channels]
+        for name, x in zip(cfg.channels, xs):
             if x.dim() != 5:
                 raise ValueError(f"SBMC expects per-sample '{name}' of shape (B, S, C, H, W), got {tuple(x.shape)}")
-            parts.append(signed_log1p(x) if name in _LOG_CHANNELS else x)
-        f = torch.cat(parts, dim=2)
+        dtype = xs[0].dtype
+        for x in xs[1:]:
+            dtype = torch.promote_types(dtype, x.dtype)
         radiance = batch["radiance"]
-        b, s, _, h, w = f.shape
+        b, s, _, h, w = radiance.shape
+        n_f = self.sample_features
+        n_g = len(SCENE_FEATURES)
+        s_out = s if cfg.per_sample else 1
+        n_out = n_f if cfg.per_sample else 2 * n_f
+        # Written into one preallocated tensor group by group (no list of parts plus their
+        # concatenation: at 1080p and 8 spp that is 2.8 GB saved).
+        out = radiance.new_empty((b, s_out, n_out + n_g, h, w), dtype=dtype)
+        off = 0
+        for name, x in zip(cfg.channels, xs):
+            c = x.shape[2]
+            log = name in _LOG_CHANNELS
+            if cfg.per_sample:
+                dst = out[:, :, off : off + c]
+                if log and not x.requires_grad:
+                    dst.copy_(x)
+                    sgn = torch.sign(dst)
+                    dst.abs_().log1p_().mul_(sgn)  # signed_log1p in place
+                else:
+                    dst.copy_(signed_log1p(x) if log else x)
+            else:
+                # Per-pixel mean and population variance (0 at 1 spp rather than NaN).
+                xl = (signed_log1p(x) if log else x).to(dtype)
+                mean = xl.mean(dim=1, keepdim=True)
+                out[:, :, off : off + c] = mean
+                out[:, :, n_f + off : n_f + off + c] = (xl - mean).square().mean(dim=1, keepdim=True)
+            off += c
         if not cfg.per_sample:
-            # Population variance: 0 at 1 spp rather than NaN.
-            mean = f.mean(dim=1, keepdim=True)
-            var = (f - mean).square().mean(dim=1, keepdim=True)
-            f = torch.cat([mean, var], dim=2)
             radiance = radiance.mean(dim=1, keepdim=True)
-            s = 1
         scene = batch.get("scene_features")
         if scene is None:
-            scene = f.new_zeros(b, len(SCENE_FEATURES))
-        g = signed_log1p(scene.to(f.dtype))[:, None, :, None, None].expand(b, s, -1, h, w)
-        return torch.cat([f, g], dim=2), radiance
+            scene = out.new_zeros(b, n_g)
+        out[:, :, n_out:] = signed_log1p(scene.to(dtype))[:, None, :, None, None]
+        return out, radiance
 
     def embed(self, f: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Algorithm 1's loop: ``f`` (B, S, F, H, W) -> (E_n (B, S, D, H, W), C_n (B, D, H, W))."""
@@ -241,11 +262,16 @@ class SBMC(Denoiser):
         radiance = radiance.to(e.dtype)
         if cfg.splat:
             plane = e.new_full((b, h + 2 * r, w + 2 * r), float("-inf"))
+            logits = None
             for y0, y1 in bands:  # pass 1: max logit landing on each pixel
-                destination_max(self.kernel(e[..., y0:y1, :], ctx[..., y0:y1, :]), k, plane=plane, row0=y0)
-            acc = e.new_zeros((b, 4, h + 2 * r, w + 2 * r))
-            for y0, y1 in bands:  # pass 2: the same logits again, exponentiated and splatted
                 logits = self.kernel(e[..., y0:y1, :], ctx[..., y0:y1, :])
+                destination_max(logits, k, plane=plane, row0=y0)
+            if len(bands) > 1:
+                logits = None  # never two bands' logits at once
+            acc = e.new_zeros((b, 4, h + 2 * r, w + 2 * r))
+            for y0, y1 in bands:  # pass 2: the same logits again (kept if one band), splatted
+                if logits is None or len(bands) > 1:
+                    logits = self.kernel(e[..., y0:y1, :], ctx[..., y0:y1, :])
                 weights = per_destination_exp(logits, k, plane, row0=y0, inplace=True)
                 splat_into_(radiance[..., y0:y1, :], weights, acc, row0=y0)
             num, wsum = acc[:, :3, r : r + h, r : r + w], acc[:, 3:, r : r + h, r : r + w]
