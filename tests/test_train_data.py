@@ -203,3 +203,14 @@ def test_validation_batches_whole_images(ds: Path) -> None:
     _eq(a[0], b[0])
     assert a[0]["radiance"].shape == (1, 8, 3, SIZE, SIZE) and a[0]["target"].shape == (1, 3, SIZE, SIZE)
     assert validation_batches(ds, model, cfg, max_images=0) == []
+
+
+def test_data_config_rejects_bad_settings() -> None:
+    """Bug caught: a typo in sampling/target silently falling back to a default."""
+    with pytest.raises(ValueError, match="sampling"):
+        DataConfig(sampling="importnace")
+    with pytest.raises(ValueError, match="target"):
+        DataConfig(target="clean")
+    with pytest.raises(ValueError, match="spp_range"):
+        DataConfig(spp_range=(3, 2))
+    assert DataConfig(spp_range=[2, 4]).spp_range == (2, 4)  # JSON lists become tuples
