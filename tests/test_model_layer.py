@@ -10,6 +10,7 @@ import mcdenoise.models.layer as layer_module
 
 from mcdenoise.models.blocks import FCStack
 from mcdenoise.models.registry import build_model, synthetic_batch
+from mcdenoise.ops.gather import gather_reference
 from mcdenoise.ops.splat import splat_reference
 
 from test_model_sbmc import permute_samples, rel_diff, set_identity_kernel
@@ -374,3 +375,40 @@ def test_compositing_gradcheck(compositing: str) -> None:
         assert torch.autograd.gradcheck(lambda *x: model._filter(*x), (logits, l_rad, l_w, l_n))
     finally:
         torch.set_num_threads(threads)
+
+
+@pytest.mark.parametrize("factor", [1.0, 3.0])
+@pytest.mark.parametrize("name", NAMES)
+def test_gather_form_keeps_a_constant_image_constant(name: str, factor: float) -> None:
+    """Catches, for ``splat=False`` (kernels applied as gathers): one shift shared by both layers
+    underflowing the layer with the lower logits, or a neighbour with zero partition weight under
+    a pixel's largest logit underflowing the rest (0 instead of 1 once parameters are x3)."""
+    from test_model_invariants import _scaled, constant_batch
+
+    torch.manual_seed(0)
+    model = _scaled(build_model(name, "small", splat=False).eval(), factor)
+    with torch.no_grad():
+        out = model(constant_batch(model))
+    assert (out - 1).abs().max() < 1e-3
+
+
+@pytest.mark.parametrize("compositing", ["alpha", "weighted"])
+def test_gather_form_matches_equations(compositing: str) -> None:
+    """Catches: the gather form of Eq. 3-6 deviating from the equations (float64, no shift)."""
+    model = build_model("layer", "small", layers=3, compositing=compositing, splat=False).double()
+    b, nl, k, h, w = 1, 3, model.config.kernel_size, 7, 8
+    g = torch.Generator().manual_seed(6)
+    logits = torch.randn(b, nl, k * k, h, w, generator=g, dtype=torch.float64)
+    l_rad, l_w, l_n = _layer_sums(b, nl, h, w, torch.float64)
+    filt = []
+    for j in range(nl):
+        vals = torch.cat([l_rad[:, j], l_w[:, j], l_n[:, j]], dim=1)
+        filt.append(gather_reference(vals, torch.exp(logits[:, j])))
+    if compositing == "weighted":
+        want = sum(f[:, :3] for f in filt) / sum(f[:, 3:4] for f in filt)
+    else:
+        want, t = torch.zeros_like(filt[0][:, :3]), torch.ones_like(filt[0][:, 3:4])
+        for f in filt:
+            want = want + t * f[:, :3] / f[:, 4:5]
+            t = t * (1 - f[:, 3:4] / f[:, 4:5])
+    assert rel_diff(model._filter(logits, l_rad, l_w, l_n), want) <= 1e-10

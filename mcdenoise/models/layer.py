@@ -28,7 +28,7 @@ from typing import Callable
 import torch.nn.functional as F
 
 from mcdenoise.models.registry import Denoiser, register_model
-from mcdenoise.ops.kernels import destination_max, per_destination_exp, per_pixel_exp
+from mcdenoise.ops.kernels import destination_max, per_destination_exp
 from mcdenoise.ops.gather import gather
 from mcdenoise.ops.multiscale import build_pyramid, combine_levels
 from mcdenoise.ops.splat import splat
@@ -349,10 +349,7 @@ class LayerDenoiser(Denoiser):
             lg = gen(0, h)
             if extra:
                 extras.append(lg[:, 0, kk:])
-            vals = torch.cat([l_rad, l_w, l_n], dim=2)
-            weights = per_pixel_exp(lg[:, :, :kk])
-            num = gather(vals.reshape(b * nl, 5, h, w), weights.reshape(b * nl, kk, h, w)).reshape(b, nl, 5, h, w)
-            rad, wbar, nbar = num[:, :, :3], num[:, :, 3:4], num[:, :, 4:5]
+            rad, wbar, nbar = self._gather_sums(lg[:, :, :kk], l_rad, l_w, l_n)
         # Every filtered sum at a pixel u carries a factor exp(-shift(u)) that differs between
         # neighbouring pixels; only ratios of sums filtered with one kernel are free of it. So no
         # eps may be added to a denominator (an eps of 1e-6 against sums scaled by exp(-30)
@@ -374,6 +371,40 @@ class LayerDenoiser(Denoiser):
         out: torch.Tensor, extras: list[torch.Tensor], extra: int
     ) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
         return (out, torch.cat(extras, dim=-2)) if extra else out
+
+    def _gather_sums(
+        self, logits: torch.Tensor, l_rad: torch.Tensor, l_w: torch.Tensor, l_n: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Gather form of Eq. 3 (``splat=False``): logits (B, L, K*K, h, w) -> per-layer filtered
+        (rad (B, L, 3, h, w), wbar, nbar (B, L, 1, h, w)), each pixel's sums scaled by one
+        positive factor of its own (shared by all layers for Eq. 6, per layer for Eq. 4-5).
+
+        As in the splat form, the normalising sum is folded into the logits, here the log of the
+        *neighbour* each tap reads, so the largest weighted tap of every pixel has weight 1 and
+        neither a neighbour with zero weight nor the other layer can underflow the sums.
+        """
+        cfg = self.config
+        b, nl, kk, h, w = logits.shape
+        k = cfg.kernel_size
+        weighted = cfg.compositing == "weighted"
+        den = l_w if weighted else l_n
+        pos = den > 0
+        safe = torch.where(pos, den, torch.ones_like(den))
+        parts = [l_rad / safe] if weighted else [l_rad / safe, l_w / safe]
+        vals = torch.cat(parts + [pos.to(den.dtype)], dim=2)  # (B, L, C, h, w)
+        c = vals.shape[2]
+        # Tap t of pixel u reads u + d_t; out-of-image reads and neighbours with den = 0 get -inf.
+        log_den = torch.log(safe).masked_fill(~pos, float("-inf")).reshape(b * nl, 1, h, w)
+        read = F.unfold(F.pad(log_den, (k // 2,) * 4, value=float("-inf")), k).reshape(b, nl, kk, h, w)
+        lw = logits + read
+        with torch.no_grad():
+            m = lw.amax(dim=(1, 2) if weighted else 2, keepdim=True)
+            m = m.masked_fill(torch.isinf(m), 0.0)  # nothing to read: any finite shift
+        weights = torch.exp(lw - m)
+        num = gather(vals.reshape(b * nl, c, h, w), weights.reshape(b * nl, kk, h, w)).reshape(b, nl, c, h, w)
+        if weighted:
+            return num[:, :, :3], num[:, :, 3:4], num[:, :, 3:4]
+        return num[:, :, :3], num[:, :, 3:4], num[:, :, -1:]
 
     @staticmethod
     def _kernel_band_rows(elems_per_row: int, h: int) -> int:
