@@ -86,8 +86,8 @@ def _one_line_error(capsys: pytest.CaptureFixture, argv: list[str], *needles: st
 
 
 def test_run_folder_refusals(tiny: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
-    """Catches a new run overwriting an existing one, a resume with other settings, and --force
-    deleting a folder that is not a run."""
+    """Catches a new run overwriting an existing one, a resume with other settings, --force
+    deleting a folder that is not a run, and a finished run left without its final weights."""
     out = tmp_path / "run"
     base = ["train", *RUN, "--data", str(tiny), "--out", str(out), "--steps", "1"]
     assert main(base) == 0
@@ -98,6 +98,12 @@ def test_run_folder_refusals(tiny: Path, tmp_path: Path, capsys: pytest.CaptureF
     assert (out / "model.safetensors").read_bytes() == weights
     assert main(base + ["--resume"]) == 0  # finished: nothing to do, nothing changed
     assert (out / "model.safetensors").read_bytes() == weights
+    before = load_file(str(out / "model.safetensors"))
+    (out / "model.safetensors").unlink()  # as if killed after the last checkpoint, before the final write
+    assert main(base + ["--resume"]) == 0
+    after = load_file(str(out / "model.safetensors"))  # (header bytes may differ: metadata order)
+    assert before.keys() == after.keys() and all(torch.equal(before[k], after[k]) for k in before)
+    weights = (out / "model.safetensors").read_bytes()
     assert main(["train", "--out", str(out), "--resume"]) == 0  # settings from config.json
     capsys.readouterr()
     other = tmp_path / "notarun"

@@ -367,6 +367,8 @@ def _train(cfg: TrainConfig, out: Path, resume: bool, force: bool, on_step: Call
     if start >= cfg.steps:
         if rank == 0:
             print(f"{out}: already trained for {start} steps", file=sys.stderr)
+            if not (out / WEIGHTS_FILE).is_file():  # killed between the last checkpoint and the final write
+                _write_final(out, model, cfg, device, world, skipped, wall_before, 0.0, {})
         return TrainResult(out, start, skipped, time.perf_counter() - t_start, {})
 
     log = MetricsLog(out, start) if rank == 0 else None
@@ -410,19 +412,27 @@ def _train(cfg: TrainConfig, out: Path, resume: bool, force: bool, on_step: Call
                 ema = outcome.loss if ema is None else 0.9 * ema + 0.1 * outcome.loss
             bar.set_postfix(loss=f"{ema:.4g}" if ema is not None else "nan", crops_s=f"{cfg.batch / dt:.1f}")
             bar.update(1)
+            # Validation and checkpoint time is not the next step's: restart its clock here.
+            t_prev = time.perf_counter()
     finally:
         bar.close()
         if log is not None:
             log.close()
+        batches.close()  # shuts the loader's worker processes down now, not at garbage collection
     wall = time.perf_counter() - t_start
     if rank == 0:
-        from safetensors.torch import save_file
-
-        with atomic_file(out / WEIGHTS_FILE) as tmp:
-            save_file(state_dict_for_safetensors(model), str(tmp),
-                      metadata={"model": cfg.model, "preset": cfg.preset, "step": str(cfg.steps)})
-        summary = {"model": cfg.model, "preset": cfg.preset, "steps": cfg.steps, "skipped": skipped, "device": str(device),
-                   "world_size": world, "wall_s": wall_before + wall, "wall_s_this_call": wall, "val": val}
-        with atomic_file(out / RESULT_FILE) as tmp:
-            tmp.write_text(json.dumps(summary, indent=1) + "\n")
+        _write_final(out, model, cfg, device, world, skipped, wall_before, wall, val)
     return TrainResult(out, cfg.steps, skipped, wall, val)
+
+
+def _write_final(out: Path, model: Denoiser, cfg: TrainConfig, device: torch.device, world: int, skipped: int,
+                 wall_before: float, wall: float, val: dict[str, float]) -> None:
+    """``model.safetensors`` (final weights) and ``result.json``, each atomically."""
+    from safetensors.torch import save_file
+
+    with atomic_file(out / WEIGHTS_FILE) as tmp:
+        save_file(state_dict_for_safetensors(model), str(tmp), metadata={"model": cfg.model, "preset": cfg.preset, "step": str(cfg.steps)})
+    summary = {"model": cfg.model, "preset": cfg.preset, "steps": cfg.steps, "skipped": skipped, "device": str(device),
+               "world_size": world, "wall_s": wall_before + wall, "wall_s_this_call": wall, "val": val}
+    with atomic_file(out / RESULT_FILE) as tmp:
+        tmp.write_text(json.dumps(summary, indent=1) + "\n")
