@@ -7,8 +7,8 @@
 
 Three figures per model, each the median over ``--steps`` timed steps after ``--warmup`` untimed ones:
 
-* ``compute s/step``: forward + backward + clipped Adam step on one batch already in memory
-  (what the model costs);
+* ``compute s/step``: forward + backward + clipped Adam step on batches already in memory
+  (what the model costs; the first ``warmup + steps`` batches of the run, so the same spp mix);
 * ``data crops/s``: batches drawn by :func:`mcdenoise.train.data.training_batches` with
   ``--workers`` loader processes and nothing else (what reading, crop selection and augmentation
   can feed);
@@ -61,9 +61,12 @@ def bench_model(name: str, data: Path, args: argparse.Namespace, workers: int) -
                       sampling=args.sampling).resolved(model.input_kind)
     dcfg = data_config(cfg)
     tr = Trainer(model, cfg, torch.device(args.device))
-    batch = {k: v.to(args.device) for k, v in batch_source(data, model, dcfg)[0].items()}
+    # The same batches the data figure reads (sample models draw their spp per batch, and cost
+    # grows with it), prepared up front so that only the model is timed.
+    source = batch_source(data, model, dcfg)
+    ready = iter([{k: v.to(args.device) for k, v in source[t].items()} for t in range(args.warmup + args.steps)])
     step_counter = iter(range(10**9))
-    compute = _median_time(lambda: tr.step(batch, next(step_counter)), args.warmup, args.steps)
+    compute = _median_time(lambda: tr.step(next(ready), next(step_counter)), args.warmup, args.steps)
 
     it = training_batches(data, model, dcfg, start_step=0, device=args.device)
     data_s = _median_time(lambda: next(it), args.warmup, args.steps)
