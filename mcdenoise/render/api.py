@@ -101,6 +101,9 @@ class RenderSettings:
         object_motion: shape id -> world translation over the shutter (object motion blur).
         camera_to_world_end: 4x4 camera-to-world at shutter close (camera motion blur).
         chunk_samples: samples traced per kernel launch (bounds memory, ~200 bytes per sample).
+        ref_time_slices: most time slices of the reference when objects move (each slice is a
+            scene update and a kernel launch, ~30-90 ms on 2 cores; the procedural dataset
+            lowers it to what the on-screen motion needs).
     """
 
     spp: int = 8
@@ -114,6 +117,7 @@ class RenderSettings:
     object_motion: dict[str, tuple[float, float, float]] | None = None
     camera_to_world_end: Any = None
     chunk_samples: int = 1 << 21
+    ref_time_slices: int = 256
 
     def check(self) -> None:
         """Raise SceneError on absurd values."""
@@ -124,6 +128,7 @@ class RenderSettings:
             ("ref_spp", self.ref_spp, 0, MAX_SPP),
             ("max_depth", self.max_depth, 1, 1024),
             ("chunk_samples", self.chunk_samples, 1, 1 << 31),
+            ("ref_time_slices", self.ref_time_slices, 1, 1 << 20),
         ):
             if not isinstance(v, (int, np.integer)) or not lo <= v <= hi:
                 raise SceneError(f"render settings: {name}={v!r} is out of range [{lo}, {hi}]")
@@ -835,7 +840,7 @@ def render_reference(
         if settings.object_motion:
             # One slice per pass; slices stratify the shutter, so the reference converges to the
             # motion-blurred image like the input does.
-            n_slices = min(spp, 256)
+            n_slices = min(spp, settings.ref_time_slices)
             per = [spp // n_slices + (1 if i < spp % n_slices else 0) for i in range(n_slices)]
             times = _slice_times(derive_seed(seed, 3), n_slices)
             passes = [(float(t), k, i) for i, (t, k) in enumerate(zip(times, per))]
