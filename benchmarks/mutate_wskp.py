@@ -8,6 +8,7 @@ edited, so it can run while others work), with that copy first on ``PYTHONPATH``
     .venv/bin/python benchmarks/mutate_wskp.py            # all mutations, one line each
     .venv/bin/python benchmarks/mutate_wskp.py --list
     .venv/bin/python benchmarks/mutate_wskp.py identity   # the mutations whose name contains it
+    .venv/bin/python benchmarks/mutate_wskp.py wskp_mr --all-failures --tests tests/test_model_wskp.py
 
 Exit status 0 when the unmutated copy passes and every mutation makes at least one test fail.
 """
@@ -98,20 +99,22 @@ def _copy_tree(dst: Path) -> None:
     shutil.copy(ROOT / "pyproject.toml", dst / "pyproject.toml")
 
 
-def _run_tests(tree: Path, timeout: float) -> tuple[int, str]:
+def _run_tests(tree: Path, timeout: float, tests: list[str], all_failures: bool) -> tuple[int, str]:
     env = dict(os.environ, PYTHONPATH=str(tree), OMP_NUM_THREADS="1")
-    cmd = [sys.executable, "-m", "pytest", "-q", "-x", "-p", "no:cacheprovider", *TESTS]
+    cmd = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-rf", *([] if all_failures else ["-x"]), *tests]
     try:
         proc = subprocess.run(cmd, cwd=tree, env=env, capture_output=True, text=True, timeout=timeout)
     except subprocess.TimeoutExpired:
         return -1, "timeout"
-    lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("FAILED") or ln.startswith("ERROR")]
+    lines = [ln.split(" - ")[0] for ln in proc.stdout.splitlines() if ln.startswith(("FAILED", "ERROR"))]
     summary = proc.stdout.strip().splitlines()[-1] if proc.stdout.strip() else proc.stderr[-300:]
-    return proc.returncode, (lines[0] if lines else summary)
+    if not lines:
+        return proc.returncode, summary
+    return proc.returncode, ("\n" + " " * 8).join(lines) if all_failures else lines[0]
 
 
-def run(mutation: Mutation | None, timeout: float) -> tuple[int, str]:
-    """Run :data:`TESTS` on a copy with ``mutation`` applied (None: the unmutated code)."""
+def run(mutation: Mutation | None, timeout: float, tests: list[str], all_failures: bool = False) -> tuple[int, str]:
+    """Run ``tests`` on a copy with ``mutation`` applied (None: the unmutated code)."""
     with tempfile.TemporaryDirectory(prefix="mutate_wskp_") as tmp:
         tree = Path(tmp)
         _copy_tree(tree)
@@ -128,7 +131,7 @@ def run(mutation: Mutation | None, timeout: float) -> tuple[int, str]:
         )
         if not check.stdout.startswith(str(tree)):
             return -3, f"tests would import {check.stdout!r}, not the mutated copy"
-        return _run_tests(tree, timeout)
+        return _run_tests(tree, timeout, tests, all_failures)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -136,6 +139,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("match", nargs="?", default="", help="only mutations whose name contains this")
     p.add_argument("--list", action="store_true", help="list the mutations and exit")
     p.add_argument("--timeout", type=float, default=900.0, help="seconds per test run")
+    p.add_argument("--tests", nargs="+", default=TESTS, help="test paths / node ids (default: the WSKP set)")
+    p.add_argument("--all-failures", action="store_true", help="list every failing test, not the first (slower)")
     args = p.parse_args(argv)
     chosen = [m for m in MUTATIONS if args.match in m.name]
     if args.list:
@@ -143,11 +148,11 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{m.name}  ({m.path})")
         return 0
     ok = True
-    rc, line = run(None, args.timeout)
+    rc, line = run(None, args.timeout, args.tests)
     print(f"{'unmutated':<62} {'passes' if rc == 0 else 'FAILS'}  {line if rc else ''}", flush=True)
     ok &= rc == 0
     for m in chosen:
-        rc, line = run(m, args.timeout)
+        rc, line = run(m, args.timeout, args.tests, args.all_failures)
         caught = rc > 0
         ok &= caught
         print(f"{m.name:<62} {'caught' if caught else 'NOT CAUGHT'}  {line}", flush=True)
