@@ -1,17 +1,26 @@
-"""Time of `mcdenoise dataset` per image: drawing + preview check, per-sample input, reference.
+"""Time of `mcdenoise dataset` per image, and its ratio to the built-in cornell-box at the same settings.
 
-    .venv/bin/python benchmarks/bench_dataset.py                      # 2 images, 128x128, 8 / 1024 spp
-    .venv/bin/python benchmarks/bench_dataset.py --count 4 --size 64 --ref-spp 256 --json out.json
+    .venv/bin/python benchmarks/bench_dataset.py                               # 2 scenes x 8 views, 64x64, 8 / 256 spp
+    .venv/bin/python benchmarks/bench_dataset.py --count 3 --views 1 --size 128 --ref-spp 1024 --json out.json
 
-Renders ``--count`` procedural images into a temporary folder in this process, exactly as
-``mcdenoise dataset`` does, and reports the wall time per image and its parts as recorded in
-each image's meta.json: ``generate`` (draw the scene, render the low-resolution preview check,
-including its JIT compilation and any rejected drawings), ``load`` (Mitsuba scene load),
-``samples`` and ``reference`` (the renderer's own timings, JIT compilation included).
+In one process: renders ``cornell-box`` ``--cornell`` times exactly as ``mcdenoise render`` does
+(scene load + ``render_image``), then ``--count`` procedural scenes with ``--views`` views each
+exactly as ``mcdenoise dataset`` does, and prints the wall time per image of both and their ratio
+(the issue's target: at most 3 at 64x64, 8 spp, 256-spp reference). The cornell figure is the
+median of its renders after the first (the first compiles its kernels; ``mcdenoise render`` runs
+later find them in Dr.Jit's disk cache); the procedural figure is the whole dataset's wall time
+divided by its images, compilation included.
 
-Every new scene compiles new kernels (Mitsuba bakes material constants into them), and Dr.Jit
-caches compiled kernels on disk (~/.drjit): a rerun with the same ``--seed`` is faster than the
-first. Use a seed not rendered before to measure cold compilation.
+Dr.Jit caches compiled kernels on disk (``~/.drjit``): rerunning the same seeds would be faster than
+a new dataset. ``--cold`` (default) points ``DRJIT_CACHE_DIR`` at a fresh temporary folder, so every
+kernel compiles as it would for seeds never rendered before; ``--warm`` keeps the user's cache.
+
+Per image the table lists, from each meta.json: ``generate`` (drawing, scene load, and the preview
+check, which compiles the input's kernel), ``check`` (an extra view's camera check), ``samples`` and
+``reference`` (renderer timings; a scene's first reference compiles its kernel).
+
+To measure an older checkout, copy this file into its ``benchmarks/`` and run it there with
+``--views 1`` (older DatasetConfigs have no views).
 """
 
 from __future__ import annotations
@@ -20,6 +29,7 @@ import argparse
 import json
 import os
 import platform
+import statistics
 import sys
 import tempfile
 import time
@@ -27,54 +37,85 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from mcdenoise.data.format import read_image  # noqa: E402
-from mcdenoise.render.procedural_dataset import DatasetConfig, image_paths, render_dataset  # noqa: E402
-
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--count", type=int, default=2)
-    ap.add_argument("--size", type=int, default=128)
+    ap.add_argument("--count", type=int, default=2, help="procedural scenes (default 2)")
+    ap.add_argument("--views", type=int, default=8, help="views per scene (default 8)")
+    ap.add_argument("--size", type=int, default=64)
     ap.add_argument("--spp", type=int, default=8)
-    ap.add_argument("--ref-spp", type=int, default=1024)
-    ap.add_argument("--seed", type=int, default=20261121)
+    ap.add_argument("--ref-spp", type=int, default=256)
+    ap.add_argument("--seed", type=int, default=20261123)
     ap.add_argument("--objects", default="10-50")
+    ap.add_argument("--cornell", type=int, default=3, help="cornell-box renders (default 3; the first is not counted)")
+    cache = ap.add_mutually_exclusive_group()
+    cache.add_argument("--cold", dest="cold", action="store_true", default=True, help="fresh kernel cache (default)")
+    cache.add_argument("--warm", dest="cold", action="store_false", help="keep the user's kernel cache")
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args()
-    lo, _, hi = args.objects.partition("-")
-    cfg = DatasetConfig(count=args.count, seed=args.seed, spp=args.spp, ref_spp=args.ref_spp,
-                        width=args.size, height=args.size, objects=(int(lo), int(hi or lo)))
-    with tempfile.TemporaryDirectory(prefix="bench_dataset_") as tmp:
-        root = Path(tmp) / "ds"
+
+    tmp = tempfile.TemporaryDirectory(prefix="bench_dataset_")
+    if args.cold:  # before the first Dr.Jit import
+        os.environ["DRJIT_CACHE_DIR"] = str(Path(tmp.name) / "drjit-cache")
+
+    from mcdenoise.data.format import read_image
+    from mcdenoise.render import RenderSettings, load_scene, render_image
+    from mcdenoise.render.procedural_dataset import DatasetConfig, image_paths, render_dataset
+
+    n = args.size
+    cornell = []
+    for i in range(max(2, args.cornell)):
         t0 = time.perf_counter()
-        render_dataset(root, cfg, progress=False)
-        wall = time.perf_counter() - t0
-        rows = []
-        for i in range(cfg.count):
-            for rel in image_paths(cfg, i):
-                meta = read_image(root / rel).meta
-                proc = meta.extra["procedural"]
-                rs = meta.extra.get("render_seconds", {})
-                rows.append({
-                    "image": rel, "kind": proc["kind"], "objects": proc["objects"] + proc["furniture"],
-                    "rejected": len(proc.get("rejected", [])), "generate_s": proc["generate_seconds"],
-                    "load_s": proc["load_seconds"], "samples_s": rs.get("samples"), "reference_s": rs.get("reference"),
-                })
+        scene = load_scene("cornell-box", width=n, height=n)
+        render_image(scene, Path(tmp.name) / f"cornell_{i}", RenderSettings(spp=args.spp, ref_spp=args.ref_spp, width=n, height=n))
+        cornell.append(time.perf_counter() - t0)
+        del scene
+    cornell_s = statistics.median(cornell[1:])
+
+    lo, _, hi = args.objects.partition("-")
+    kw = {"views": args.views} if args.views != 1 else {}
+    cfg = DatasetConfig(count=args.count, seed=args.seed, spp=args.spp, ref_spp=args.ref_spp, width=n, height=n,
+                        objects=(int(lo), int(hi or lo)), **kw)
+    root = Path(tmp.name) / "ds"
+    t0 = time.perf_counter()
+    render_dataset(root, cfg, progress=False)
+    wall = time.perf_counter() - t0
+    rows = []
+    for i in range(cfg.count):
+        for rel in image_paths(cfg, i):
+            meta = read_image(root / rel).meta
+            proc = meta.extra["procedural"]
+            rs = meta.extra.get("render_seconds", {})
+            view = meta.extra.get("view", {})
+            rows.append({
+                "image": rel, "kind": proc["kind"], "objects": proc["objects"] + proc["furniture"],
+                "rejected": len(proc.get("rejected", [])) + len(view.get("rejected_cameras", [])),
+                "generate_s": proc["generate_seconds"] if view.get("index", 0) == 0 else 0.0,
+                "check_s": view.get("check_seconds", 0.0), "samples_s": rs.get("samples"), "reference_s": rs.get("reference"),
+            })
+    tmp.cleanup()
+    per_image = wall / max(1, len(rows))
     res = {
         "machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, load {os.getloadavg()[0]:.1f}",
-        "config": {"count": cfg.count, "size": args.size, "spp": cfg.spp, "ref_spp": cfg.ref_spp, "seed": cfg.seed,
-                   "objects": list(cfg.objects)},
+        "config": {"count": cfg.count, "views": args.views, "size": n, "spp": cfg.spp, "ref_spp": cfg.ref_spp,
+                   "seed": cfg.seed, "objects": list(cfg.objects), "kernel_cache": "cold" if args.cold else "warm"},
+        "cornell_s": [round(c, 2) for c in cornell],
+        "cornell_per_image_s": round(cornell_s, 2),
         "wall_s": round(wall, 2),
-        "per_image_s": round(wall / max(1, len(rows)), 2),
+        "per_image_s": round(per_image, 2),
+        "ratio": round(per_image / cornell_s, 2),
         "images": rows,
     }
-    print(f"| image | kind | objects | rejected | generate s | load s | samples s | reference s |")
+    print("| image | kind | objects | rejected | generate s | check s | samples s | reference s |")
     print("|---|---|---|---|---|---|---|---|")
     for r in rows:
-        print(f"| {r['image']} | {r['kind']} | {r['objects']} | {r['rejected']} | {r['generate_s']:.1f} | {r['load_s']:.2f} "
+        print(f"| {r['image']} | {r['kind']} | {r['objects']} | {r['rejected']} | {r['generate_s']:.1f} | {r['check_s']:.2f} "
               f"| {r['samples_s']} | {r['reference_s']} |")
-    print(f"\n{cfg.count} image(s) {args.size}x{args.size}, {cfg.spp} spp + {cfg.ref_spp} spp reference: "
-          f"{wall:.1f} s wall, {res['per_image_s']} s per image ({res['machine']})")
+    print(f"\ncornell-box {n}x{n}, {args.spp} spp + {args.ref_spp} spp reference: {', '.join(f'{c:.2f}' for c in cornell)} s "
+          f"(first compiles; median of the rest {cornell_s:.2f} s)")
+    print(f"procedural: {cfg.count} scene(s) x {args.views} view(s): {wall:.1f} s wall, {per_image:.2f} s per image "
+          f"({'cold' if args.cold else 'warm'} kernel cache; {res['machine']})")
+    print(f"ratio procedural / cornell-box per image: {res['ratio']:.2f}")
     if args.json:
         args.json.write_text(json.dumps(res, indent=1) + "\n")
     return 0

@@ -342,3 +342,28 @@ def test_emitters_rescaled_in_place_match_a_fresh_load() -> None:
         del fresh
         gc.collect()
         np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-7)
+
+
+def test_reference_time_slices_follow_on_screen_motion() -> None:
+    """Catches: a reference slice count that ignores how far objects move on screen (visible
+    ghost copies of fast objects, or 256 costly slices for motion under a pixel), or that
+    forgets depth (near objects move more pixels) or objects behind the camera."""
+    from mcdenoise.render.procedural_views import motion_pixels, reference_time_slices
+
+    cam = P.look_at([0, 0, 0], [0, 0, 10], [0, 1, 0])  # +Z forward
+    ps = P.ProceduralScene(scene={}, seed=0, drawn_seed=0, attempts=0, kind="outdoor", camera_to_world=cam,
+                           fov=90.0, aperture_radius=0.0, focus_distance=10.0, depth_of_field=False, motion_blur=True,
+                           shutter=(0.0, 1.0), camera_to_world_end=None, object_motion={"object_0": [1.0, 0.0, 0.0]},
+                           camera_path=(np.zeros(3), np.array([0, 0, 10.0]), np.eye(3)[1]), info={},
+                           extents={"object_0": (np.array([0.0, 0.0, 10.0]), 0.5)})
+    # fov 90 on 64 pixels: 32 pixels per unit at depth 1; nearest point at depth 9.5.
+    assert motion_pixels(ps, cam, 64) == pytest.approx(32 / 9.5)
+    assert reference_time_slices(ps, cam, 64) == 8  # clipped up: 3.4 px needs 7
+    ps.object_motion = {"object_0": [5.0, 0.0, 0.0]}
+    assert reference_time_slices(ps, cam, 64) == int(np.ceil(2 * 5 * 32 / 9.5))  # ghosts <= 0.5 px apart
+    ps.extents = {"object_0": (np.array([0.0, 0.0, 2.0]), 0.5)}  # nearer: more pixels
+    assert reference_time_slices(ps, cam, 64) == 214
+    ps.extents = {"object_0": (np.array([0.0, 0.0, -3.0]), 0.5)}  # behind the camera
+    assert reference_time_slices(ps, cam, 64) == 256
+    ps.object_motion = {}
+    assert motion_pixels(ps, cam, 64) == 0.0

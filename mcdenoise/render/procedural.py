@@ -6,11 +6,13 @@ know about it (camera matrix, depth of field, motion). :func:`generate_scene` re
 
 Everything is drawn from ``numpy.random.default_rng(seed)``: the same seed gives the same dict
 (compare with :func:`scene_digest`) and, rendered with the same render seed, the same pixels. A drawn
-scene is checked with a cheap low-resolution preview (:func:`preview_stats`): scenes that render
-(nearly) black, show (almost) none of their objects or produce non-finite values are re-drawn
-from a seed derived from ``(seed, attempt)``; the accepted scene's emitters are then rescaled so
-that its log-average luminance lands in a random but sane range (so that training images are
-neither black nor blown out).
+scene is checked with a cheap preview (:func:`preview_stats`; the dataset renders it on the loaded
+scene with the input's own settings, so that it compiles the kernel the input reuses): scenes that
+render (nearly) black, show (almost) none of their objects or produce non-finite values are
+re-drawn from a seed derived from ``(seed, attempt)``; the accepted scene's emitters are then
+rescaled so that its median luminance lands in a random but sane range (so that training images
+are neither black nor blown out). Other camera views of a drawn scene:
+:mod:`mcdenoise.render.procedural_views`.
 
 What varies, per scene:
 
@@ -95,7 +97,8 @@ SHAPES: dict[str, float] = {
 CONDUCTORS = ("Au", "Ag", "Al", "Cu", "Cr", "W", "Hg", "Ir", "Rh", "none")  # all ship with Mitsuba 3.9
 MIN_OBJECTS, MAX_OBJECTS = 10, 50
 MAX_ATTEMPTS = 12
-#: Preview size (pixels on the long side) and samples per pixel of the rejection check.
+#: Preview size (pixels on the long side) and samples per pixel of the standalone rejection check
+#: (the dataset previews at the input image's own size and spp instead).
 PREVIEW_SIZE, PREVIEW_SPP = 32, 8
 #: Gap (metres) between the floor and the boxes standing on it, so that no two faces are coplanar
 #: (ties between hits would be broken by BVH order; a precaution, not a measured problem).
@@ -580,8 +583,8 @@ class ProceduralScene:
         camera_path: (origin, target, up) used to build sequences around this view.
         info: summary for meta.json: material/texture/shape kinds counted, object and light count,
             preview statistics, emitter scale applied, rejected drawings.
-        extents: (centre (3,), radius) of every random object and furniture piece, so that other
-            views (:func:`view_camera`) keep clear of them.
+        extents: shape id -> (centre (3,), radius) of every random object and furniture piece,
+            so that other views keep clear of them and motion can be measured on screen.
         room: indoor scenes: (half width along x, half depth along z, height); None outdoors.
         loaded: the Mitsuba scene loaded at the film size, camera made opaque and emitters
             already rescaled, when :func:`generate` was asked to keep it (else None). Rendering
@@ -605,7 +608,7 @@ class ProceduralScene:
     object_motion: dict[str, list[float]]
     camera_path: tuple[np.ndarray, np.ndarray, np.ndarray]
     info: dict
-    extents: list[tuple[np.ndarray, float]] = field(default_factory=list)
+    extents: dict[str, tuple[np.ndarray, float]] = field(default_factory=dict)
     room: tuple[float, float, float] | None = None
     loaded: Any = None
 
@@ -676,7 +679,7 @@ def _draw(
         object_motion=obj_motion,
         camera_path=(cam.origin.copy(), cam.target.copy(), cam.up.copy()),
         info=info,
-        extents=[(c.copy(), float(r)) for c, r in b.extents.values()],
+        extents={k: (c.copy(), float(r)) for k, (c, r) in b.extents.items()},
         room=b.room,
     )
 

@@ -255,11 +255,17 @@ def rebuild_manifest(root: str | Path, done: set[str] | None = None) -> Path:
     return write_manifest(root, entries)
 
 
-def _settings(cfg: DatasetConfig, seed: int, *, motion: dict | None = None, camera_end: Any = None) -> Any:
+def _settings(cfg: DatasetConfig, seed: int, *, ps: Any = None, camera: Any = None, camera_end: Any = None) -> Any:
+    """Render settings of one image; with ``ps`` (and its view's ``camera``) the scene's motion,
+    and a reference time-slice count fitted to the on-screen motion."""
     from mcdenoise.render import RenderSettings
+    from mcdenoise.render.procedural_views import reference_time_slices
 
+    motion = {k: tuple(v) for k, v in ps.object_motion.items()} if ps is not None else {}
+    slices = reference_time_slices(ps, camera, cfg.width) if motion else 256
     return RenderSettings(spp=cfg.spp, ref_spp=cfg.ref_spp, width=cfg.width, height=cfg.height, seed=seed,
-                          max_depth=cfg.max_depth, object_motion=motion or None, camera_to_world_end=camera_end)
+                          max_depth=cfg.max_depth, object_motion=motion or None, camera_to_world_end=camera_end,
+                          ref_time_slices=slices)
 
 
 def _view(cfg: DatasetConfig, ps: Any, scene_seed: int, view: int, rejected: list[str]) -> tuple[np.ndarray, Any]:
@@ -273,17 +279,16 @@ def _view(cfg: DatasetConfig, ps: Any, scene_seed: int, view: int, rejected: lis
     from mcdenoise.render.procedural import derive_seed, preview_stats
     from mcdenoise.render.procedural_views import set_camera, view_camera, view_motion_end
 
-    motion = {k: tuple(v) for k, v in ps.object_motion.items()}
     for attempt in range(VIEW_ATTEMPTS):
         c2w = view_camera(ps, np.random.default_rng(derive_seed(scene_seed, 3, view, attempt)))
-        settings = _settings(cfg, derive_seed(scene_seed, view, 1), motion=motion, camera_end=view_motion_end(ps, c2w))
+        settings = _settings(cfg, derive_seed(scene_seed, view, 1), ps=ps, camera=c2w, camera_end=view_motion_end(ps, c2w))
         set_camera(ps.loaded, c2w)
         problem = preview_stats(ps, scene=ps.loaded, settings=settings, seed=derive_seed(scene_seed, 9, view, attempt)).problem()
         if problem is None:
             return c2w, settings
         rejected.append(f"camera {attempt}: {problem}")
     c2w = np.asarray(ps.camera_to_world)
-    return c2w, _settings(cfg, derive_seed(scene_seed, view, 1), motion=motion, camera_end=ps.camera_to_world_end)
+    return c2w, _settings(cfg, derive_seed(scene_seed, view, 1), ps=ps, camera=c2w, camera_end=ps.camera_to_world_end)
 
 
 def render_procedural_image(
@@ -310,7 +315,7 @@ def render_procedural_image(
     if cfg.frames == 1:
         # View 0's settings carry the drawn motion, known only once the scene is drawn.
         def view0(ps: Any) -> Any:
-            return _settings(cfg, derive_seed(scene_seed, 0, 1), motion={k: tuple(v) for k, v in ps.object_motion.items()},
+            return _settings(cfg, derive_seed(scene_seed, 0, 1), ps=ps, camera=ps.camera_to_world,
                              camera_end=ps.camera_to_world_end)
         ps = generate(scene_seed, kind=cfg.kind, width=cfg.width, height=cfg.height, objects=tuple(cfg.objects),
                       settings=view0, keep_loaded=True)
@@ -347,8 +352,10 @@ def render_procedural_image(
             if cfg.views > 1:
                 view_meta["view"] = {"index": v, "views": cfg.views, "rejected_cameras": rejected,
                                      "check_seconds": round(time.perf_counter() - tv, 3)}
-            render_image(scene, root / rel, settings, scene_name=name,
-                         extra_meta={**view_meta, "camera_to_world": c2w.tolist()})
+            extra = {**view_meta, "camera_to_world": c2w.tolist()}
+            if settings.object_motion:
+                extra["ref_time_slices"] = min(settings.ref_time_slices, settings.ref_spp)
+            render_image(scene, root / rel, settings, scene_name=name, extra_meta=extra)
             if on_image is not None:
                 on_image(rel)
         return
