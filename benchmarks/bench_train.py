@@ -40,7 +40,7 @@ from mcdenoise.models.info import count_parameters  # noqa: E402
 from mcdenoise.models.registry import build_model, list_models  # noqa: E402
 from mcdenoise.train.config import TrainConfig  # noqa: E402
 from mcdenoise.train.data import batch_source, training_batches  # noqa: E402
-from mcdenoise.train.loop import Trainer, data_config  # noqa: E402
+from mcdenoise.train.trainer import Trainer, data_config  # noqa: E402
 
 
 def _median_time(fn: Any, warmup: int, steps: int) -> float:

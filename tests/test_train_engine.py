@@ -13,7 +13,7 @@ from mcdenoise.models.registry import build_model, synthetic_batch
 from mcdenoise.train.checkpoint import latest_checkpoint, load_checkpoint, prune_checkpoints, save_checkpoint
 from mcdenoise.train.config import ConfigError, TrainConfig, check_resume_config
 from mcdenoise.train.losses import LOSSES, get_loss
-from mcdenoise.train.loop import Trainer
+from mcdenoise.train.trainer import Trainer
 from mcdenoise.train.optim import lr_at
 from mcdenoise.train.runlog import COLUMNS, MetricsLog, plot_loss, read_metrics
 

@@ -12,7 +12,7 @@ from conftest import DEVICES
 from mcdenoise.models.registry import build_model, list_models
 from mcdenoise.train.config import TrainConfig
 from mcdenoise.train.data import batch_source
-from mcdenoise.train.loop import Trainer, data_config
+from mcdenoise.train.trainer import Trainer, data_config
 from train_tiny_data import make_tiny_dataset
 
 STEPS = 6

@@ -17,8 +17,6 @@ import dataclasses
 import sys
 from pathlib import Path
 
-from mcdenoise.errors import McDenoiseError
-
 #: CLI flag (dest) -> TrainConfig field, for the flags that map one to one.
 _FIELDS = ("model", "preset", "data", "steps", "batch", "crop", "lr", "loss", "device", "seed", "val_every",
            "checkpoint_every", "keep_every", "workers", "threads", "target", "sampling", "warmup", "schedule", "clip_grad",
