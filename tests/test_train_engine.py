@@ -193,3 +193,33 @@ def test_cli_help_names_every_loss() -> None:
     add_parser(p)
     help_text = next(a.help for a in p._actions if "--loss" in a.option_strings)
     assert sorted(n.strip(" ,") for n in help_text.split("(")[0].replace(" or ", ", ").split(",")) == sorted(LOSSES)
+
+
+def test_metrics_mirrored_to_tensorboard_when_installed(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Catches the TensorBoard path breaking unseen on machines without tensorboard (ours): a
+    stand-in SummaryWriter must receive every finite scalar, with validation under val/, and a
+    resume must purge the steps after the checkpoint."""
+    import sys
+    import types
+
+    calls: list[tuple] = []
+
+    class FakeWriter:
+        def __init__(self, logdir: str, purge_step: int | None = None) -> None:
+            calls.append(("init", Path(logdir).name, purge_step))
+
+        def add_scalar(self, tag: str, value: float, step: int) -> None:
+            calls.append((tag, value, step))
+
+        def close(self) -> None:
+            calls.append(("close",))
+
+    fake = types.ModuleType("torch.utils.tensorboard")
+    fake.SummaryWriter = FakeWriter  # type: ignore[attr-defined]
+    monkeypatch.setitem(sys.modules, "torch.utils.tensorboard", fake)
+    log = MetricsLog(tmp_path, 7)
+    log.write({"step": 8, "phase": "image", "loss": 0.25, "lr": 1e-3, "grad_norm": float("nan"), "val_relmse": 0.5})
+    log.close()
+    assert calls[0] == ("init", "tensorboard", 8)
+    assert ("loss", 0.25, 8) in calls and ("val/relmse", 0.5, 8) in calls and ("lr", 1e-3, 8) in calls
+    assert not any(c[0] == "grad_norm" for c in calls) and calls[-1] == ("close",)

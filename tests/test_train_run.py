@@ -116,6 +116,10 @@ def test_run_folder_refusals(tiny: Path, tmp_path: Path, capsys: pytest.CaptureF
     capsys.readouterr()
     _one_line_error(capsys, ["train", "--model", "kpcn", "--data", str(tmp_path), "--out", str(tmp_path / "x")], "manifest.json")
     _one_line_error(capsys, ["train", "--model", "nope", "--data", str(tiny), "--out", str(tmp_path / "y")], "unknown model")
+    _one_line_error(capsys, ["train", *RUN, "--data", str(tiny), "--out", str(tmp_path / "z"), "--crop", "99"], "smaller than")
+    assert not (tmp_path / "z").exists()  # refused before the run folder was made
+    if not torch.cuda.is_available():
+        _one_line_error(capsys, ["train", *RUN, "--data", str(tiny), "--out", str(tmp_path / "z"), "--device", "cuda"], "CUDA")
 
 
 @pytest.mark.slow
