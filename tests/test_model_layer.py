@@ -7,6 +7,7 @@ import torch
 import torch.nn.functional as F
 
 import mcdenoise.models.layer as layer_module
+import mcdenoise.ops.composite as composite_module
 
 from mcdenoise.models.blocks import FCStack
 from mcdenoise.models.registry import build_model, synthetic_batch
@@ -151,7 +152,7 @@ def test_peaked_kernel_does_not_darken_its_neighbours(
     and under the neighbourhood-max shift (compositing must be exact under any per-destination
     shift, not only under the one ``ops.kernels`` happens to use)."""
     if shift == "neighbourhood":
-        monkeypatch.setattr(layer_module, "per_destination_exp", neighbourhood_shift_exp)
+        monkeypatch.setattr(composite_module, "per_destination_exp", neighbourhood_shift_exp)
     torch.manual_seed(0)
     model = build_model("layer", "small", compositing=compositing)
     b, nl, k, h, w = 1, model.config.layers, model.config.kernel_size, 15, 16

@@ -17,21 +17,16 @@ trainable weights (Eq. 10).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Callable
 
 import torch
 from torch import nn
 
 from mcdenoise.data.channels import SCENE_FEATURES, num_components
 from mcdenoise.models.blocks import FCStack, UNet, signed_log1p
-from typing import Callable
-
-import torch.nn.functional as F
-
 from mcdenoise.models.registry import Denoiser, register_model
-from mcdenoise.ops.kernels import destination_max, per_destination_exp
-from mcdenoise.ops.gather import gather
+from mcdenoise.ops.composite import composite_layers, gather_layer_sums, splat_layer_sums
 from mcdenoise.ops.multiscale import build_pyramid, combine_levels
-from mcdenoise.ops.splat import splat
 
 __all__ = ["LayerConfig", "LayerDenoiser", "LAYER_CHANNELS"]
 
@@ -161,16 +156,6 @@ def _small_optimized(**kw: object) -> LayerConfig:
     return LayerConfig(**common, kernel_widths=(8,), kernel_size=5, hierarchical=True, **kw)  # type: ignore[arg-type]
 
 
-def _ratio(num: torch.Tensor, den: torch.Tensor) -> torch.Tensor:
-    """``num / den`` where ``den > 0``, else 0; num (B, C, H, W), den (B, 1, H, W).
-
-    Scale-free, unlike ``num / (den + eps)``. The denominator is replaced before dividing (not
-    only the quotient) so that pixels with ``den == 0`` give a zero gradient instead of NaN.
-    """
-    pos = den > 0
-    return torch.where(pos, num / torch.where(pos, den, torch.ones_like(den)), torch.zeros_like(num))
-
-
 class LayerDenoiser(Denoiser):
     """Sample-partitioning layer denoiser.
 
@@ -274,145 +259,40 @@ class LayerDenoiser(Denoiser):
         l_n: torch.Tensor,
         extra: int = 0,
     ) -> tuple[torch.Tensor, torch.Tensor] | torch.Tensor:
-        """Eq. 3 then Eq. 4-6 at one resolution.
+        """Eq. 3 then Eq. 4-6 at one resolution (:mod:`mcdenoise.ops.composite`).
 
         ``logits``: the kernel generator's output (B, L, K*K + extra, h, w), or a function
-        ``(y0, y1) -> `` its rows ``y0:y1``, called band by band so that no kernel-sized tensor of
-        the whole image exists (at 1080p, 17x17 and L = 2: 4.8 GB each). Layer sums ``l_rad``
-        (B, L, 3, h, w), ``l_w`` and ``l_n`` (B, L, 1, h, w). Returns the composited (B, 3, h, w),
-        and with ``extra`` > 0 also layer 0's extra output channels (B, extra, h, w).
+        ``(y0, y1) -> `` its rows ``y0:y1``, called band by band without autograd so that no
+        kernel-sized tensor of the whole image exists (at 1080p, 17x17 and L = 2: 4.8 GB each).
+        Layer sums ``l_rad`` (B, L, 3, h, w), ``l_w`` and ``l_n`` (B, L, 1, h, w). Returns the
+        composited (B, 3, h, w), and with ``extra`` > 0 also layer 0's extra output channels
+        (B, extra, h, w) (the Eq. 10 level weights).
         """
         cfg = self.config
         b, nl, _, h, w = l_rad.shape
-        k, kk = cfg.kernel_size, cfg.kernel_size**2
+        kk = cfg.kernel_size**2
         gen = logits if callable(logits) else (lambda y0, y1: logits[..., y0:y1, :])
         weighted = cfg.compositing == "weighted"
-        extras: list[torch.Tensor] = []
-        if cfg.splat:
-            # Splat (den * x, den) with weights exp(logit) as (x, 1) with weights exp(logit +
-            # log den), den = the sum each layer is normalised by (l_w for Eq. 6, l_n for Eq. 4).
-            # Then the largest tap landing on a pixel carries weight 1 after the per-destination
-            # shift, even when the source with the largest logit has den = 0 (a softmax over
-            # layers that underflowed), so a filtered denominator cannot underflow to 0 while the
-            # exact one is positive. Sources with den = 0 add nothing and get logit -inf.
-            den = l_w if weighted else l_n
-            pos = den > 0
-            safe = torch.where(pos, den, torch.ones_like(den))
-            parts = [l_rad / safe] if weighted else [l_rad / safe, l_w / safe]
-            vals = torch.cat(parts + [pos.to(den.dtype)], dim=2)
-            log_den = torch.log(safe).masked_fill(~pos, float("-inf"))
-            c = vals.shape[2]
-            # Eq. 6 sums over layers before dividing, so its shift is shared by all layers; Eq. 4-5
-            # divide within a layer only, and a per-layer shift keeps a layer far below the other
-            # one in logit from underflowing while it is still visible.
-            bs, ss = (b, nl) if weighted else (b * nl, 1)
-            r = k // 2
-            rows = self._kernel_band_rows(b * nl * (kk + extra) * w, h)
+        # Layer 0's extra channels per band start row; a band generated twice (banded path)
+        # overwrites its first copy. Copies, so that no band's full logits stay referenced.
+        extras: dict[int, torch.Tensor] = {}
 
-            def folded(y0: int, y1: int, keep_extra: bool) -> torch.Tensor:
-                lg = gen(y0, y1)
-                if extra and keep_extra:
-                    extras.append(lg[:, 0, kk:])
-                # A fresh tensor (the add), so the exponentiation below may work in place.
-                return (lg[:, :, :kk] + log_den[..., y0:y1, :]).reshape(bs, ss, kk, y1 - y0, w)
-
-            plane = torch.full((bs, h + 2 * r, w + 2 * r), float("-inf"), dtype=l_rad.dtype, device=l_rad.device)
-            if rows >= h:
-                lw = folded(0, h, True)  # one band: kept (with its graph), not recomputed
-                destination_max(lw.detach(), k, plane=plane)
-            else:
-                # Two passes: the shift of a destination needs every band's logits that land on
-                # it, so the first pass only records the maxima and the second regenerates.
-                with torch.no_grad():
-                    for y0 in range(0, h, rows):
-                        destination_max(folded(y0, min(h, y0 + rows), False), k, plane=plane, row0=y0)
-            # A destination nothing real lands on: any finite shift (only -inf taps go there).
-            plane.masked_fill_(torch.isinf(plane), 0.0)
-            if rows >= h:
-                num, _ = splat(vals.reshape(bs, ss, c, h, w), per_destination_exp(lw, k, plane, inplace=True))
-            else:
-                num = vals.new_zeros(bs, c, h, w)
-                v_all = vals.reshape(bs, ss, c, h, w)
-                for y0 in range(0, h, rows):
-                    y1 = min(h, y0 + rows)
-                    wts = per_destination_exp(folded(y0, y1, True), k, plane, row0=y0, inplace=True)
-                    # Zero rows around the band catch what its kernels splat beyond it.
-                    lo, hi = max(0, y0 - r), min(h, y1 + r)
-                    pad = (0, 0, y0 - lo, hi - y1)
-                    part, _ = splat(F.pad(v_all[..., y0:y1, :], pad), F.pad(wts, pad))
-                    num[..., lo:hi, :] += part
-            if weighted:  # the splat summed over its "samples", the layers: Eq. 6's sums
-                return self._with_extra(_ratio(num[:, :3], num[:, 3:4]), extras, extra)
-            num = num.reshape(b, nl, c, h, w)
-            rad, wbar, nbar = num[:, :, :3], num[:, :, 3:4], num[:, :, -1:]
-        else:
-            lg = gen(0, h)
+        def kernel_logits(y0: int, y1: int) -> torch.Tensor:
+            lg = gen(y0, y1)
             if extra:
-                extras.append(lg[:, 0, kk:])
-            rad, wbar, nbar = self._gather_sums(lg[:, :, :kk], l_rad, l_w, l_n)
-        # Every filtered sum at a pixel u carries a factor exp(-shift(u)) that differs between
-        # neighbouring pixels; only ratios of sums filtered with one kernel are free of it. So no
-        # eps may be added to a denominator (an eps of 1e-6 against sums scaled by exp(-30)
-        # blacked out every pixel near a peaked kernel, issue 8 bug 2); a sum of exactly 0 means
-        # nothing landed, and its numerator is then 0 too.
-        if weighted:
-            out = _ratio(rad.sum(dim=1), wbar.sum(dim=1))
+                extras[y0] = lg[:, 0, kk:].clone()
+            return lg[:, :, :kk]
+
+        if cfg.splat:
+            # Autograd keeps every band's weights anyway, so bands would only add recomputation.
+            rows = h if torch.is_grad_enabled() else max(1, min(h, _BAND_ELEMS // (b * nl * (kk + extra) * w)))
+            sums = splat_layer_sums(kernel_logits, l_rad, l_w, l_n, cfg.kernel_size, weighted=weighted, band_rows=rows)
         else:
-            out = torch.zeros_like(rad[:, 0])
-            transmit = torch.ones_like(wbar[:, 0])
-            for j in range(nl):
-                out = out + transmit * _ratio(rad[:, j], nbar[:, j])
-                # wbar_j <= nbar_j (w_j <= n_j before filtering), so the factor stays in [0, 1].
-                transmit = transmit * (1 - _ratio(wbar[:, j], nbar[:, j]))
-        return self._with_extra(out, extras, extra)
-
-    @staticmethod
-    def _with_extra(
-        out: torch.Tensor, extras: list[torch.Tensor], extra: int
-    ) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
-        return (out, torch.cat(extras, dim=-2)) if extra else out
-
-    def _gather_sums(
-        self, logits: torch.Tensor, l_rad: torch.Tensor, l_w: torch.Tensor, l_n: torch.Tensor
-    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Gather form of Eq. 3 (``splat=False``): logits (B, L, K*K, h, w) -> per-layer filtered
-        (rad (B, L, 3, h, w), wbar, nbar (B, L, 1, h, w)), each pixel's sums scaled by one
-        positive factor of its own (shared by all layers for Eq. 6, per layer for Eq. 4-5).
-
-        As in the splat form, the normalising sum is folded into the logits, here the log of the
-        *neighbour* each tap reads, so the largest weighted tap of every pixel has weight 1 and
-        neither a neighbour with zero weight nor the other layer can underflow the sums.
-        """
-        cfg = self.config
-        b, nl, kk, h, w = logits.shape
-        k = cfg.kernel_size
-        weighted = cfg.compositing == "weighted"
-        den = l_w if weighted else l_n
-        pos = den > 0
-        safe = torch.where(pos, den, torch.ones_like(den))
-        parts = [l_rad / safe] if weighted else [l_rad / safe, l_w / safe]
-        vals = torch.cat(parts + [pos.to(den.dtype)], dim=2)  # (B, L, C, h, w)
-        c = vals.shape[2]
-        # Tap t of pixel u reads u + d_t; out-of-image reads and neighbours with den = 0 get -inf.
-        log_den = torch.log(safe).masked_fill(~pos, float("-inf")).reshape(b * nl, 1, h, w)
-        read = F.unfold(F.pad(log_den, (k // 2,) * 4, value=float("-inf")), k).reshape(b, nl, kk, h, w)
-        lw = logits + read
-        with torch.no_grad():
-            m = lw.amax(dim=(1, 2) if weighted else 2, keepdim=True)
-            m = m.masked_fill(torch.isinf(m), 0.0)  # nothing to read: any finite shift
-        weights = torch.exp(lw - m)
-        num = gather(vals.reshape(b * nl, c, h, w), weights.reshape(b * nl, kk, h, w)).reshape(b, nl, c, h, w)
-        if weighted:
-            return num[:, :, :3], num[:, :, 3:4], num[:, :, 3:4]
-        return num[:, :, :3], num[:, :, 3:4], num[:, :, -1:]
-
-    @staticmethod
-    def _kernel_band_rows(elems_per_row: int, h: int) -> int:
-        """Rows per band of kernel generation + splatting; all rows (no recomputation) while
-        gradients are being recorded, since autograd keeps every band's weights anyway."""
-        if torch.is_grad_enabled():
-            return h
-        return max(1, min(h, _BAND_ELEMS // max(1, elems_per_row)))
+            sums = gather_layer_sums(kernel_logits(0, h), l_rad, l_w, l_n, cfg.kernel_size, weighted=weighted)
+        out = composite_layers(*sums, weighted=weighted)
+        if not extra:
+            return out
+        return out, torch.cat([extras[y0] for y0 in sorted(extras)], dim=-2)
 
     def forward(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
         """Denoise: per-sample buffers -> ``(B, 3, H, W)`` linear radiance."""
@@ -420,9 +300,9 @@ class LayerDenoiser(Denoiser):
         ctx, decoded, (l_rad, l_w, l_n, l_emb) = self._layer_sums(batch)
         if not cfg.hierarchical:
 
-            def logits(y0: int, y1: int) -> torch.Tensor:
-                l_emb_rows, ctx_rows = l_emb[..., y0:y1, :], ctx[..., y0:y1, :]
-                return self.kernel_gen(l_emb_rows, ctx_rows)
+            def logits(y0: int, y1: int, l_emb: torch.Tensor = l_emb, ctx: torch.Tensor = ctx) -> torch.Tensor:
+                l_emb, ctx = l_emb[..., y0:y1, :], ctx[..., y0:y1, :]  # rows y0:y1 only
+                return self.kernel_gen(l_emb, ctx)
 
             return self._filter(logits, l_rad, l_w, l_n)  # type: ignore[return-value]
         return self._forward_hierarchical(ctx, decoded, l_rad, l_w, l_n, l_emb)
