@@ -843,6 +843,9 @@ def generate(
         if keep_loaded:
             ps.loaded = load_procedural(ps, width, height)
             pv.set_camera(ps.loaded, ps.camera_to_world)
+            # Emitter strengths opaque before the preview compiles (an envmap's scale loads as
+            # a literal), so that the exposure fix below leaves the kernel as it is.
+            pv.scale_loaded_emitters(ps.loaded, ps.scene)
         if not check:
             return ps
         pset = (settings(ps) if callable(settings) else settings) if keep_loaded else None
@@ -856,7 +859,7 @@ def generate(
             k = target / stats.median
             _scale_emitters(ps.scene, k)
             if ps.loaded is not None:
-                pv.scale_loaded_emitters(ps.loaded, ps.scene)
+                pv.scale_loaded_emitters(ps.loaded, ps.scene, k)
             ps.info.update(
                 preview={"mean": stats.mean * k, "median": target, "black_fraction": stats.black_fraction,
                          "object_fraction": stats.object_fraction},

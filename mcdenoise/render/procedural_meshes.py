@@ -32,7 +32,7 @@ MeshArrays = tuple[np.ndarray, np.ndarray, np.ndarray]
 
 
 def mitsuba_module() -> Any:
-    """The configured ``mitsuba`` module (variant ``llvm_ad_rgb``), imported on first use."""
+    """The configured ``mitsuba`` module (this process's variant, see ``_mitsuba``), imported on first use."""
     from mcdenoise.render._mitsuba import mitsuba
 
     return mitsuba()

@@ -10,9 +10,11 @@ that reach the kernels as *opaque* parameters (measured with ``dr.JitFlag.Kernel
 * the camera's ``to_world``: a literal when loaded or set from a plain ``mi.Transform4f`` (a new
   view recompiles everything, 1.6 s for a 12-object scene); after :func:`set_camera` it is an
   opaque variable and any later camera reuses the kernels;
-* area/point/spot radiance and the envmap ``scale``: opaque already, so :func:`scale_loaded_emitters`
-  rescales them without recompiling. Mitsuba's ``sunsky`` keeps ``sun_scale``/``sky_scale`` as
-  scalars baked into the kernel: rescaling it costs one compilation (once per scene);
+* area/point/spot radiance: opaque already, so :func:`scale_loaded_emitters` rescales them
+  without recompiling. An envmap's ``scale`` changes the kernel with its value, but its pixel
+  data does not (after a first update, which the generator does before the preview), so the
+  data is scaled instead. Mitsuba's ``sunsky`` keeps ``sun_scale``/``sky_scale`` as scalars baked
+  into the kernel: rescaling it costs one compilation (once per scene);
 * the sampler seed and the row offset (already opaque in :mod:`mcdenoise.render.api`). The image
   size and the spp are literals: a preview shares the input's kernel only at the input's size
   and spp.
@@ -54,13 +56,16 @@ def set_camera(scene: Any, camera_to_world: np.ndarray) -> None:
     params.update()
 
 
-def scale_loaded_emitters(scene: Any, scene_dict: dict) -> list[str]:
-    """Copy the emitter strengths of ``scene_dict`` (already rescaled) into the loaded ``scene``.
+def scale_loaded_emitters(scene: Any, scene_dict: dict, k: float = 1.0) -> list[str]:
+    """Bring the loaded ``scene``'s emitters to the strengths of ``scene_dict``, which the caller
+    has just multiplied by ``k`` (1 = only make them opaque, before the first render).
 
     Only the top-level emitters the generator makes are handled (area lights on shapes, point,
-    spot, envmap, sunsky), found by their ids. The loaded values become exactly the dict's
-    float32-rounded numbers, as a fresh load of the rescaled dict would hold them. Returns the
-    parameter keys that were set.
+    spot, envmap, sunsky), found by their ids. Area, point and spot radiance become the dict's
+    float32-rounded numbers, as opaque values. An envmap's ``scale`` is left as loaded (a new
+    value changes the kernel, measured) and its pixel data is multiplied by ``k`` instead (same
+    image up to rounding; so ``k`` must be the factor since the previous call). Sunsky scales are scalars baked into the kernel: set from the dict,
+    they cost one compilation. Returns the parameter keys that were set.
     """
     import drjit as dr
 
@@ -86,8 +91,10 @@ def scale_loaded_emitters(scene: Any, scene_dict: dict) -> list[str]:
         elif t in ("point", "spot"):
             colour(f"{sid}.intensity.value", node["intensity"]["value"])
         elif t == "envmap":
-            params[f"{sid}.scale"] = dr.opaque(mi.Float, float(node.get("scale", 1.0)))
-            done.append(f"{sid}.scale")
+            # Also with k = 1: the envmap's first update changes the kernel once (its state
+            # after any update is the same, measured), so it must happen before the preview.
+            params[f"{sid}.data"] = params[f"{sid}.data"] * float(k)
+            done.append(f"{sid}.data")
         elif t == "sunsky":
             for k in ("sun_scale", "sky_scale"):
                 params[f"{sid}.{k}"] = float(node.get(k, 1.0))
