@@ -4,6 +4,7 @@
         --size 1920x64 1920x128 --spp 8 --extrapolate 1920x1080
     .venv/bin/python benchmarks/bench_model_memory.py              # every registered model, 256x256, 8 spp
     .venv/bin/python benchmarks/bench_model_memory.py --train      # forward + backward instead
+    .venv/bin/python benchmarks/bench_model_memory.py --models sbmc --set kernel_budget_mb=16
 
 Each (model, size) runs in its own subprocess (so one run's allocator state cannot hide another's
 peak) with ``MALLOC_MMAP_THRESHOLD_=65536``, so glibc returns large freed blocks to the system and
@@ -51,7 +52,11 @@ def child(args: argparse.Namespace) -> None:
 
     torch.set_num_threads(args.threads)
     w, h = (int(v) for v in args.size[0].split("x"))
-    model = build_model(args.models[0], args.preset).to(args.device)
+    overrides = {}
+    for kv in args.set or []:
+        key, _, val = kv.partition("=")
+        overrides[key] = json.loads(val)
+    model = build_model(args.models[0], args.preset, **overrides).to(args.device)
     model.train(args.train)
     batch = synthetic_batch(model, spp=args.spp, height=h, width=w)
     batch = {k: v.to(args.device) for k, v in batch.items()}
@@ -88,6 +93,8 @@ def main() -> None:
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--train", action="store_true", help="forward + backward (default: inference)")
+    ap.add_argument("--set", nargs="*", metavar="FIELD=JSON",
+                    help="config overrides, e.g. kernel_budget_mb=16 (values parsed as JSON)")
     ap.add_argument("--extrapolate", help="WxH to extrapolate each model's peak to (needs 2+ sizes)")
     ap.add_argument("--timeout", type=int, default=1800, help="seconds per run")
     ap.add_argument("--json", help="also write all results to this file")
@@ -111,6 +118,8 @@ def main() -> None:
                    "--spp", str(args.spp), "--device", args.device, "--threads", str(args.threads)]
             if args.train:
                 cmd.append("--train")
+            if args.set:
+                cmd += ["--set", *args.set]
             try:
                 p = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=args.timeout)
             except subprocess.TimeoutExpired:

@@ -237,7 +237,7 @@ class SBMC(Denoiser):
         return max(1, (cfg.kernel_budget_mb << 20) // per_row)
 
     @torch.no_grad()
-    def _forward_banded(self, f: torch.Tensor, radiance: torch.Tensor) -> torch.Tensor:
+    def _forward_banded(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
         """Inference: Algorithm 1 with every per-sample network run one band of rows at a time.
 
         The per-sample networks are 1x1 convolutions, so a band's output depends on that band's
@@ -245,6 +245,8 @@ class SBMC(Denoiser):
         kernels exist for one band at a time. Only the U-Nets see the whole (per-pixel) image.
         """
         cfg = self.config
+        # Built here so that ``del f`` below frees it (a caller's reference would keep it alive).
+        f, radiance = self.features(batch)
         k, r = cfg.kernel_size, cfg.kernel_size // 2
         b, s, _, h, w = f.shape
         d = cfg.embed_width
@@ -290,9 +292,9 @@ class SBMC(Denoiser):
     def forward(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
         """Denoise: per-sample buffers -> ``(B, 3, H, W)`` linear radiance."""
         cfg = self.config
-        f, radiance = self.features(batch)
         if not torch.is_grad_enabled():
-            return self._forward_banded(f, radiance)
+            return self._forward_banded(batch)
+        f, radiance = self.features(batch)
         e, ctx = self.embed(f)
         radiance = radiance.to(e.dtype)
         k = cfg.kernel_size
