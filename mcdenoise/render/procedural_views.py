@@ -11,10 +11,12 @@ that reach the kernels as *opaque* parameters (measured with ``dr.JitFlag.Kernel
   view recompiles everything, 1.6 s for a 12-object scene); after :func:`set_camera` it is an
   opaque variable and any later camera reuses the kernels;
 * area/point/spot radiance: opaque already, so :func:`scale_loaded_emitters` rescales them
-  without recompiling. An envmap's ``scale`` changes the kernel with its value, but its pixel
-  data does not (after a first update, which the generator does before the preview), so the
-  data is scaled instead. Mitsuba's ``sunsky`` keeps ``sun_scale``/``sky_scale`` as scalars baked
-  into the kernel: rescaling it costs one compilation (once per scene);
+  without recompiling (indoor scenes: the preview's kernel is the input's). An envmap's
+  ``scale`` changes the kernel with its value; its pixel data does so less often (after a first
+  update, which the generator does before the preview, some scenes keep their kernel, others
+  still compile once more: not understood). Mitsuba's ``sunsky`` keeps
+  ``sun_scale``/``sky_scale`` as scalars baked into the kernel. So outdoor scenes usually
+  compile their input kernel twice (preview, then after the exposure fix), once per scene;
 * the sampler seed and the row offset (already opaque in :mod:`mcdenoise.render.api`). The image
   size and the spp are literals: a preview shares the input's kernel only at the input's size
   and spp.
