@@ -9,7 +9,10 @@ n scenes are arm Y's first n scenes) and are validated on the same separate val 
 
 * ``ref1024`` / ``ref128``: 8 spp input, reference.exr at that spp, ``--target reference``;
 * ``noisy``: 16 spp stored, no reference; each crop's input is 8 random samples and its target the
-  mean of the other 8 (``--target noisy``); ``noisy_more``: the same with more scenes.
+  mean of the other 8 (``--target noisy``); ``noisy_more``: the same with more scenes;
+* ``ref1024_16``: 16 spp stored with 1024-spp references, input 8 random samples (``--spp 8 8``).
+  It separates the two things the noisy arm changes: the reference arms always see the same 8-spp
+  noise realisation of a pixel, the noisy arm a new subset of 16 samples per crop.
 
 Cost is CPU seconds (user + system, children included, from ``getrusage``), so a loaded machine
 changes the wall time but much less the accounting. The budget is what ``ref1024`` spends: its
@@ -83,7 +86,8 @@ def arm_folder(work: Path, arm: str, pool: str, n: int) -> Path:
     return out
 
 
-def train_arm(work: Path, arm: str, data: Path, a: argparse.Namespace, steps: int, target: str) -> tuple[float, dict[str, str]]:
+def train_arm(work: Path, arm: str, data: Path, a: argparse.Namespace, steps: int, target: str,
+              spp: tuple[int, int] | None) -> tuple[float, dict[str, str]]:
     run = work / f"run_{arm}"
     cmd = BIN + ["train", "--model", a.model, "--data", str(data), "--out", str(run), "--steps", str(steps),
                  "--crop", str(a.crop), "--batch", str(a.batch), "--loss", "relmse", "--target", target,
@@ -91,6 +95,8 @@ def train_arm(work: Path, arm: str, data: Path, a: argparse.Namespace, steps: in
                  "--lr", str(a.lr), "--force", "--no-progress"]
     if a.model in ("kpcn", "dpcn"):
         cmd += ["--branch-fraction", "0"]
+    if spp is not None:
+        cmd += ["--spp", str(spp[0]), str(spp[1])]
     cpu = _run(cmd, work / f"log_run_{arm}")
     with open(run / "metrics.csv") as f:
         rows = [r for r in csv.DictReader(f) if r.get("val_relmse")]
@@ -115,15 +121,16 @@ def main() -> None:
     a.work.mkdir(parents=True, exist_ok=True)
     size = a.size
     render_pool(a.work, "val", count=a.val, spp=8, ref_spp=1024, seed=100, split="0,1,0", size=size)
-    arms = [  # (arm, pool, images, stored spp, reference spp, target)
-        ("ref1024", "poolA", a.images[0], 8, 1024, "reference"),
-        ("ref128", "poolB", a.images[1], 8, 128, "reference"),
-        ("noisy", "poolC", a.images[2], 16, 0, "noisy"),
-        ("noisy_more", "poolC", a.images[3], 16, 0, "noisy"),
+    arms = [  # (arm, pool, images, stored spp, reference spp, target, input spp range)
+        ("ref1024", "poolA", a.images[0], 8, 1024, "reference", None),
+        ("ref128", "poolB", a.images[1], 8, 128, "reference", None),
+        ("noisy", "poolC", a.images[2], 16, 0, "noisy", None),
+        ("noisy_more", "poolC", a.images[3], 16, 0, "noisy", None),
+        ("ref1024_16", "poolD", a.images[0], 16, 1024, "reference", (8, 8)),
     ]
     # One pool per render setting, as large as its largest arm; an arm is charged its share.
     pools: dict[str, tuple[int, int, int]] = {}
-    for _, pool, n, spp, ref, _ in arms:
+    for _, pool, n, spp, ref, _, _ in arms:
         pools[pool] = (max(n, pools.get(pool, (0,))[0]), spp, ref)
     per_image = {}
     for pool, (count, spp, ref) in pools.items():
@@ -131,11 +138,11 @@ def main() -> None:
     results = {}
     cpu_per_step = None
     budget = 0.0
-    for arm, pool, n, _, _, target in arms:
+    for arm, pool, n, _, _, target, spp_in in arms:
         render = per_image[pool] * n
         data = arm_folder(a.work, arm, pool, n)
         steps = a.steps if cpu_per_step is None else max(1, int((budget - render) / cpu_per_step))
-        cpu, last = train_arm(a.work, arm, data, a, steps, target)
+        cpu, last = train_arm(a.work, arm, data, a, steps, target, spp_in)
         if cpu_per_step is None:
             cpu_per_step = cpu / steps
             budget = render + cpu
