@@ -226,10 +226,13 @@ class UNet(nn.Module):
             y = F.max_pool2d(y, 2)
         y = self.bottleneck(y)
         decoded = []
-        for i, blk in enumerate(self.dec):
-            skip = skips[self.levels - 1 - i]
-            y = F.interpolate(y, size=skip.shape[-2:], mode="bilinear", align_corners=False)
-            y = blk(torch.cat([y, skip], dim=1))
+        for blk in self.dec:
+            # pop and inline: neither the skip nor the upsampled tensor outlives the concatenation
+            # (at full resolution they are the U-Net's largest tensors after the concatenation).
+            skip = skips.pop()
+            y = torch.cat([F.interpolate(y, size=skip.shape[-2:], mode="bilinear", align_corners=False), skip], dim=1)
+            del skip
+            y = blk(y)
             decoded.append(y)
         out = self.final(y)[..., :h, :w]
         if not return_decoder:
