@@ -588,8 +588,8 @@ class ProceduralScene:
         room: indoor scenes: (half width along x, half depth along z, height); None outdoors.
         loaded: the Mitsuba scene loaded at the film size, camera made opaque and emitters
             already rescaled, when :func:`generate` was asked to keep it (else None). Rendering
-            this very object again reuses the kernels its preview compiled; a fresh load of the
-            same dict would compile them all again.
+            this very object again reuses the kernels its preview compiled; a second load of the
+            same dict (while this one lives) would compile them all again.
     """
 
     scene: dict
