@@ -8,8 +8,9 @@ In one process: renders ``cornell-box`` ``--cornell`` times exactly as ``mcdenoi
 exactly as ``mcdenoise dataset`` does, and prints the wall time per image of both and their ratio
 (the issue's target: at most 3 at 64x64, 8 spp, 256-spp reference). The cornell figure is the
 median of its renders after the first (the first compiles its kernels; ``mcdenoise render`` runs
-later find them in Dr.Jit's disk cache); the procedural figure is the whole dataset's wall time
-divided by its images, compilation included.
+later find them in Dr.Jit's disk cache), rendered ``--cornell`` times before and again after the
+dataset, so that a machine load that changes during the run weighs on both sides; the
+procedural figure is the whole dataset's wall time divided by its images, compilation included.
 
 Dr.Jit caches compiled kernels on disk (``~/.drjit``): rerunning the same seeds would be faster than
 a new dataset. ``--cold`` (default) points ``DRJIT_CACHE_DIR`` at a fresh temporary folder, so every
@@ -63,14 +64,18 @@ def main() -> int:
     from mcdenoise.render.procedural_dataset import DatasetConfig, image_paths, render_dataset
 
     n = args.size
-    cornell = []
-    for i in range(max(2, args.cornell)):
-        t0 = time.perf_counter()
-        scene = load_scene("cornell-box", width=n, height=n)
-        render_image(scene, Path(tmp.name) / f"cornell_{i}", RenderSettings(spp=args.spp, ref_spp=args.ref_spp, width=n, height=n))
-        cornell.append(time.perf_counter() - t0)
-        del scene
-    cornell_s = statistics.median(cornell[1:])
+    cornell: list[float] = []
+
+    def render_cornell(times: int) -> None:
+        for _ in range(times):
+            t0 = time.perf_counter()
+            scene = load_scene("cornell-box", width=n, height=n)
+            render_image(scene, Path(tmp.name) / f"cornell_{len(cornell)}",
+                         RenderSettings(spp=args.spp, ref_spp=args.ref_spp, width=n, height=n))
+            cornell.append(time.perf_counter() - t0)
+            del scene
+
+    render_cornell(max(2, args.cornell))
 
     lo, _, hi = args.objects.partition("-")
     kw = {"views": args.views} if args.views != 1 else {}
@@ -80,6 +85,8 @@ def main() -> int:
     t0 = time.perf_counter()
     render_dataset(root, cfg, progress=False)
     wall = time.perf_counter() - t0
+    render_cornell(max(1, args.cornell - 1))
+    cornell_s = statistics.median(cornell[1:])
     rows = []
     for i in range(cfg.count):
         for rel in image_paths(cfg, i):
@@ -112,7 +119,7 @@ def main() -> int:
         print(f"| {r['image']} | {r['kind']} | {r['objects']} | {r['rejected']} | {r['generate_s']:.1f} | {r['check_s']:.2f} "
               f"| {r['samples_s']} | {r['reference_s']} |")
     print(f"\ncornell-box {n}x{n}, {args.spp} spp + {args.ref_spp} spp reference: {', '.join(f'{c:.2f}' for c in cornell)} s "
-          f"(first compiles; median of the rest {cornell_s:.2f} s)")
+          f"(before and after the dataset; the first compiles; median of the rest {cornell_s:.2f} s)")
     print(f"procedural: {cfg.count} scene(s) x {args.views} view(s): {wall:.1f} s wall, {per_image:.2f} s per image "
           f"({'cold' if args.cold else 'warm'} kernel cache; {res['machine']})")
     print(f"ratio procedural / cornell-box per image: {res['ratio']:.2f}")
