@@ -70,7 +70,7 @@ MUTATIONS = [
         "scene_features_zeroed",
         "scene features zeroed before they reach the network",
         SBMC,
-        (("out[:, :, n_out:] = signed_log1p(scene.to(dtype))", "out[:, :, n_out:] = 0 * signed_log1p(scene.to(dtype))"),),
+        (("g = signed_log1p(scene.to(f.dtype))", "g = 0 * signed_log1p(scene.to(f.dtype))"),),
     ),
     Mutation(
         "radiance_not_log_compressed",

@@ -230,7 +230,8 @@ class UNet(nn.Module):
             # pop and inline: neither the skip nor the upsampled tensor outlives the concatenation
             # (at full resolution they are the U-Net's largest tensors after the concatenation).
             skip = skips.pop()
-            y = torch.cat([F.interpolate(y, size=skip.shape[-2:], mode="bilinear", align_corners=False), skip], dim=1)
+            y = F.interpolate(y, size=skip.shape[-2:], mode="bilinear", align_corners=False)
+            y = torch.cat([y, skip], dim=1)
             del skip
             y = blk(y)
             decoded.append(y)

@@ -173,13 +173,13 @@ class SBMC(Denoiser):
         n_out = n_f if cfg.per_sample else 2 * n_f
         # Written into one preallocated tensor group by group (no list of parts plus their
         # concatenation: at 1080p and 8 spp that is 2.8 GB saved).
-        out = radiance.new_empty((b, s_out, n_out + n_g, h, w), dtype=dtype)
+        f = radiance.new_empty((b, s_out, n_out + n_g, h, w), dtype=dtype)
         off = 0
         for name, x in zip(cfg.channels, xs):
             c = x.shape[2]
             log = name in _LOG_CHANNELS
             if cfg.per_sample:
-                dst = out[:, :, off : off + c]
+                dst = f[:, :, off : off + c]
                 if log and not x.requires_grad:
                     dst.copy_(x)
                     sgn = torch.sign(dst)
@@ -190,16 +190,17 @@ class SBMC(Denoiser):
                 # Per-pixel mean and population variance (0 at 1 spp rather than NaN).
                 xl = (signed_log1p(x) if log else x).to(dtype)
                 mean = xl.mean(dim=1, keepdim=True)
-                out[:, :, off : off + c] = mean
-                out[:, :, n_f + off : n_f + off + c] = (xl - mean).square().mean(dim=1, keepdim=True)
+                f[:, :, off : off + c] = mean
+                f[:, :, n_f + off : n_f + off + c] = (xl - mean).square().mean(dim=1, keepdim=True)
             off += c
         if not cfg.per_sample:
             radiance = radiance.mean(dim=1, keepdim=True)
         scene = batch.get("scene_features")
         if scene is None:
-            scene = out.new_zeros(b, n_g)
-        out[:, :, n_out:] = signed_log1p(scene.to(dtype))[:, None, :, None, None]
-        return out, radiance
+            scene = f.new_zeros(b, n_g)
+        g = signed_log1p(scene.to(f.dtype))
+        f[:, :, n_out:] = g[:, None, :, None, None]
+        return f, radiance
 
     def embed(self, f: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Algorithm 1's loop: ``f`` (B, S, F, H, W) -> (E_n (B, S, D, H, W), C_n (B, D, H, W))."""
