@@ -7,7 +7,8 @@ VENV=${VENV:-.venv}
 PY=${PYTHON:-python3}
 
 need_deb=()
-for pkg in libllvm19 libtbb12; do
+# libllvm19: Mitsuba 3's LLVM backend. (OIDN needs no system package: pyoidn bundles its TBB.)
+for pkg in libllvm19; do
   dpkg -s "$pkg" >/dev/null 2>&1 || need_deb+=("$pkg")
 done
 if [ ${#need_deb[@]} -gt 0 ]; then

@@ -62,7 +62,7 @@ def run(args: argparse.Namespace) -> int:
     from mcdenoise.data.format import ImageFolder
     from mcdenoise.data.tensors import image_batch
     from mcdenoise.eval.metrics import compute_metrics
-    from mcdenoise.eval.oidn import oidn_available, oidn_denoise
+    from mcdenoise.eval.oidn import oidn_available, oidn_denoise, version as oidn_version
     from mcdenoise.io.atomic import atomic_file
     from mcdenoise.io.exr import write_preview
     from mcdenoise.models.registry import list_models
@@ -99,13 +99,15 @@ def run(args: argparse.Namespace) -> int:
     previews = {"noisy": noisy["radiance"], "reference": target}
     if oidn_available():
         t0 = time.perf_counter()
-        den = oidn_denoise(noisy["radiance"], noisy.get("albedo"), noisy.get("normal"))
+        den = oidn_denoise(noisy["radiance"], noisy.get("albedo"), noisy.get("normal"), quality="high")
         oidn_secs = time.perf_counter() - t0
-        rows["OIDN (albedo+normal)"] = compute_metrics(den, target, names)
+        rows[f"OIDN {oidn_version()} high"] = compute_metrics(den, target, names)
         previews["oidn"] = den
         summary["oidn_seconds"] = round(oidn_secs, 3)
+        summary["oidn_version"] = oidn_version()
+        summary["oidn_guides"] = [g for g in ("albedo", "normal") if noisy.get(g) is not None]
     else:
-        _say("      OIDN not available (pip extra 'oidn' and Debian libtbb12): baseline skipped")
+        _say("      OIDN not available (pip extra 'oidn': pyoidn==2.5.1.0): baseline skipped")
     _say("[3/4] scores against the reference (relMSE eps 1e-2, SMAPE eps 1e-2, PSNR/DSSIM on Reinhard-tonemapped images):")
     _say(_table(rows, names))
     summary["metrics"] = rows

@@ -1,145 +1,132 @@
-"""Intel Open Image Denoise as a baseline, through the ``oidn`` pip package (OIDN 1.4).
+"""Intel Open Image Denoise 2.5.1 as a baseline, through the ``pyoidn`` package (2.5.1.0).
 
-The package's Python layer has two traps we avoid here: it never sets the ``hdr`` flag (OIDN then
-treats input as LDR and clamps it to [0, 1]), and it silently copies non-contiguous inputs into a
-temporary that is freed before the filter runs (OIDN then reads garbage). We call the C API through
-the package's library handle, keep every buffer contiguous and alive until the filter has run, and
-check the device error after each call.
+The wheel bundles ``libOpenImageDenoise`` 2.5.1 and its own TBB (found through the library's
+RPATH), so no system package is needed. Its one-call ``pyoidn.denoise`` takes ``(H, W, 3)``
+float16/float32 images, copies non-contiguous ones, keeps every bound buffer alive until the next
+call and checks the device error after each step. What this module adds:
+
+* our layout, ``(3, H, W)`` like every other image in the package, and any real dtype (float64
+  from numpy arithmetic is common; pyoidn refuses it with a TypeError);
+* ``hdr=True`` by default: pyoidn's default is ``hdr=False``, in which mode OIDN treats input as
+  LDR and clamps it to [0, 1] -- silently wrong for radiance;
+* shape checks that name the expected shape, and one error type (:class:`OIDNError`) with a
+  one-line message for every failure, including OIDN's own ("unsupported combination of input
+  features" becomes "normal needs albedo");
+* :func:`version`, read from the loaded library, so reports say which OIDN produced a number.
+
+pyoidn keeps one CPU device and filter per process and serialises calls, so this is safe from
+threads; the device uses every core (OIDN's default), and threaded runs are not bitwise
+repeatable (see ``tests/test_oidn.py``).
 """
 
 from __future__ import annotations
 
-import ctypes
+import functools
 from typing import Any
 
 import numpy as np
 
 from mcdenoise.errors import McDenoiseError
 
-__all__ = ["oidn_available", "oidn_denoise", "OIDNError"]
+__all__ = ["OIDNError", "QUALITIES", "oidn_available", "oidn_denoise", "version"]
+
+#: OIDN's quality presets, best and slowest first. ``high`` is OIDN's default for CPU devices.
+QUALITIES: tuple[str, ...] = ("high", "balanced", "fast")
+
+_INSTALL_HINT = "install it with: pip install 'pyoidn==2.5.1.0' (or mcdenoise's 'oidn' extra)"
 
 
 class OIDNError(McDenoiseError):
-    pass
+    """Open Image Denoise is missing, was given bad input, or reported a failure."""
 
 
-def _lib() -> Any:
+def _pyoidn() -> Any:
+    """The imported ``pyoidn`` module, with its shared library loaded and a CPU device usable."""
     try:
-        import oidn  # noqa: F401  (loads libOpenImageDenoise with its bundled libtbb)
-        import oidn.capi as capi
-    except (ImportError, OSError) as e:  # OSError: libtbb12 missing
-        raise OIDNError(f"Open Image Denoise is not usable: {e} (install the 'oidn' extra and Debian's libtbb12)") from e
-    return capi
+        import pyoidn
+    except ImportError as e:
+        raise OIDNError(f"Open Image Denoise is not installed ({e}); {_INSTALL_HINT}") from e
+    try:
+        # pyoidn loads the shared library lazily; this first C call surfaces a broken install.
+        cpu_ok = bool(pyoidn.Device.is_cpu_available())
+    except OSError as e:  # dlopen failure: a wheel for another platform, a missing libstdc++
+        raise OIDNError(f"Open Image Denoise library could not be loaded: {e}") from e
+    if not cpu_ok:
+        raise OIDNError("Open Image Denoise has no CPU device on this machine (it needs SSE4.1 or NEON)")
+    return pyoidn
 
 
 def oidn_available() -> bool:
+    """True when :func:`oidn_denoise` can run here."""
     try:
-        _lib()
+        _pyoidn()
     except OIDNError:
         return False
     return True
 
 
-def _check(capi: Any, device: int, what: str) -> None:
-    # The package binds oidnGetDeviceError(device, NULL); our own binding also gets the message.
-    msg = ctypes.c_char_p()
-    code = _error_fn()(ctypes.c_void_p(device), ctypes.byref(msg))
-    if code != 0:
-        text = msg.value.decode(errors="replace") if msg.value else "unknown error"
-        raise OIDNError(f"OIDN {what} failed (code {code}): {text}")
+@functools.lru_cache(maxsize=1)
+def version() -> str:
+    """The version of the loaded OIDN library, e.g. ``"2.5.1"`` (not the pip package's version)."""
+    pyoidn = _pyoidn()
+    device = pyoidn.Device(pyoidn.OIDN_DEVICE_TYPE_CPU)
+    try:
+        packed = int(device.get_int("version"))  # OIDN packs it as major*10000 + minor*100 + patch
+    finally:
+        device.release()
+    if packed <= 0:
+        raise OIDNError(f"Open Image Denoise reported no version (got {packed})")
+    return f"{packed // 10000}.{packed // 100 % 100}.{packed % 100}"
 
 
-_ERR_FN: Any = None
-_SET_BOOL: Any = None
-
-
-def _error_fn() -> Any:
-    global _ERR_FN
-    if _ERR_FN is None:
-        import oidn
-
-        lib = ctypes.CDLL(_library_path(oidn))
-        fn = lib.oidnGetDeviceError
-        fn.argtypes = [ctypes.c_void_p, ctypes.POINTER(ctypes.c_char_p)]
-        fn.restype = ctypes.c_int
-        _ERR_FN = fn
-    return _ERR_FN
-
-
-def _set_bool_fn() -> Any:
-    global _SET_BOOL
-    if _SET_BOOL is None:
-        import oidn
-
-        lib = ctypes.CDLL(_library_path(oidn))
-        fn = lib.oidnSetFilter1b
-        fn.argtypes = [ctypes.c_void_p, ctypes.c_char_p, ctypes.c_bool]
-        fn.restype = None
-        _SET_BOOL = fn
-    return _SET_BOOL
-
-
-def _library_path(oidn_mod: Any) -> str:
-    import glob
-    import os
-
-    here = os.path.dirname(oidn_mod.__file__)
-    found = sorted(glob.glob(os.path.join(here, "lib.*", "libOpenImageDenoise.so*")))
-    if not found:
-        raise OIDNError(f"no libOpenImageDenoise found under {here}")
-    return found[0]
-
-
-def _hwc(x: np.ndarray | None, name: str, shape: tuple[int, int]) -> np.ndarray | None:
-    if x is None:
-        return None
-    x = np.asarray(x, dtype=np.float32)
-    if x.ndim != 3 or x.shape[0] != 3 or x.shape[1:] != shape:
-        raise OIDNError(f"OIDN input {name!r}: expected (3, {shape[0]}, {shape[1]}), got {tuple(x.shape)}")
-    return np.ascontiguousarray(np.moveaxis(x, 0, -1))
+def _hwc(x: Any, name: str, shape: tuple[int, int] | None) -> np.ndarray:
+    """``x`` (3, H, W), any real dtype, any strides -> contiguous float32 (H, W, 3)."""
+    arr = np.asarray(x)
+    want = "(3, H, W)" if shape is None else f"(3, {shape[0]}, {shape[1]})"
+    if arr.ndim != 3 or arr.shape[0] != 3 or (shape is not None and arr.shape[1:] != shape):
+        raise OIDNError(f"OIDN input {name!r}: expected {want}, got {tuple(arr.shape)}")
+    if arr.shape[1] == 0 or arr.shape[2] == 0:
+        raise OIDNError(f"OIDN input {name!r}: empty image {tuple(arr.shape)}")
+    if not (np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)):
+        raise OIDNError(f"OIDN input {name!r}: expected a real-valued array, got dtype {arr.dtype}")
+    return np.ascontiguousarray(np.moveaxis(arr, 0, -1), dtype=np.float32)
 
 
 def oidn_denoise(
-    color: np.ndarray,
-    albedo: np.ndarray | None = None,
-    normal: np.ndarray | None = None,
+    color: Any,
+    albedo: Any | None = None,
+    normal: Any | None = None,
     *,
     hdr: bool = True,
+    quality: str = "high",
     clean_aux: bool = False,
 ) -> np.ndarray:
-    """Denoise ``color`` (3, H, W) linear radiance with OIDN's ``RT`` filter; returns (3, H, W).
+    """Denoise ``color`` (3, H, W) linear radiance with OIDN's ``RT`` filter.
 
-    ``albedo`` and ``normal`` (3, H, W) are optional guides (normal needs albedo, as OIDN requires).
-    ``hdr=True`` (default) keeps radiance above 1; set it False only for tonemapped LDR input.
+    Args:
+        color: (3, H, W) noisy radiance, non-negative; numpy array or CPU tensor, any real dtype.
+        albedo: optional (3, H, W) guide in [0, 1].
+        normal: optional (3, H, W) guide in [-1, 1]; OIDN accepts it only together with albedo.
+        hdr: keep radiance above 1 (default). False only for tonemapped LDR input: OIDN then
+            clamps to [0, 1].
+        quality: one of :data:`QUALITIES`; ``fast`` is several times quicker and less accurate.
+        clean_aux: the guides are noise-free (e.g. from a reference render); OIDN then skips
+            its own prefiltering of them.
+
+    Returns:
+        (3, H, W) float32 denoised radiance, a new contiguous array.
     """
-    capi = _lib()
-    color = np.asarray(color)
-    if color.ndim != 3 or color.shape[0] != 3:
-        raise OIDNError(f"OIDN input 'color': expected (3, H, W), got {tuple(color.shape)}")
-    h, w = color.shape[1:]
+    pyoidn = _pyoidn()
+    if quality not in QUALITIES:
+        raise OIDNError(f"OIDN quality {quality!r}: expected one of {', '.join(QUALITIES)}")
     if normal is not None and albedo is None:
         raise OIDNError("OIDN needs an albedo guide to use a normal guide")
-    buffers = {"color": _hwc(color, "color", (h, w)), "albedo": _hwc(albedo, "albedo", (h, w)),
-               "normal": _hwc(normal, "normal", (h, w))}
-    out = np.zeros((h, w, 3), dtype=np.float32)
-    device = capi.NewDevice(capi.DEVICE_TYPE_CPU)
-    capi.CommitDevice(device)
-    _check(capi, device, "device creation")
-    filt = capi.NewFilter(device, "RT")
+    rgb = _hwc(color, "color", None)
+    shape = rgb.shape[:2]
+    guides = {name: _hwc(g, name, shape) for name, g in (("albedo", albedo), ("normal", normal)) if g is not None}
     try:
-        for name, buf in buffers.items():
-            if buf is not None:
-                capi.SetSharedFilterImage(filt, name, buf, capi.FORMAT_FLOAT3, w, h)
-        capi.SetSharedFilterImage(filt, "output", out, capi.FORMAT_FLOAT3, w, h)
-        _set_bool_fn()(ctypes.c_void_p(filt), b"hdr", bool(hdr))
-        if clean_aux:
-            _set_bool_fn()(ctypes.c_void_p(filt), b"cleanAux", True)
-        capi.CommitFilter(filt)
-        _check(capi, device, "filter set-up")
-        capi.ExecuteFilter(filt)
-        _check(capi, device, "filter execution")
-    finally:
-        capi.ReleaseFilter(filt)
-        capi.ReleaseDevice(device)
-    del buffers  # kept alive until here on purpose: OIDN reads them during ExecuteFilter
+        out = pyoidn.denoise(rgb, **guides, hdr=bool(hdr), clean_aux=bool(clean_aux), quality=quality)
+    except (RuntimeError, ValueError, TypeError) as e:
+        msg = " ".join(str(e).split())  # one line, whatever the library sent
+        raise OIDNError(f"OIDN {version()} failed: {msg}") from e
     return np.ascontiguousarray(np.moveaxis(out, -1, 0))
