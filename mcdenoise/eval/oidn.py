@@ -126,7 +126,8 @@ def oidn_denoise(
         raise OIDNError("OIDN needs an albedo guide to use a normal guide")
     rgb = _hwc(color, "color", None)
     shape = rgb.shape[:2]
-    guides = {name: _hwc(g, name, shape) for name, g in (("albedo", albedo), ("normal", normal)) if g is not None}
+    given = {"albedo": albedo, "normal": normal}
+    guides = {name: _hwc(g, name, shape) for name, g in given.items() if g is not None}
     try:
         out = pyoidn.denoise(rgb, **guides, hdr=bool(hdr), clean_aux=bool(clean_aux), quality=quality)
     except (RuntimeError, ValueError, TypeError) as e:
