@@ -429,6 +429,8 @@ class _Prepared:
     cam_end: np.ndarray | None = None
     # param key (to_world or vertex_positions) -> (base value as float64 array, translation)
     motion: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
+    # vertex_positions key -> (its vertex_normals key, normals as loaded (float32, flat))
+    normals: dict[str, tuple[str, np.ndarray]] = field(default_factory=dict)
     params: Any = None
     restore_camera: Any = None
 
@@ -484,6 +486,11 @@ def _prepare(scene: Any, settings: RenderSettings, camera_to_world: np.ndarray |
             elif vkey in keys:
                 # Meshes without a to_world parameter (cube, obj, ply): move the vertices.
                 prep.motion[vkey] = (np.array(params[vkey], dtype=np.float64).reshape(-1, 3), tr)
+                nkey = f"{shape_id}.vertex_normals"
+                if nkey in keys:
+                    normals = np.array(params[nkey], dtype=np.float32).reshape(-1)
+                    if normals.size:
+                        prep.normals[vkey] = (nkey, normals)
             else:
                 movable = sorted({k.rsplit(".", 1)[0] for k in keys if k.endswith((".to_world", ".vertex_positions"))} - {"sensor"})
                 raise SceneError(f"object_motion: no movable shape with id {shape_id!r} (movable shapes: {movable})")
@@ -511,6 +518,14 @@ def _pose_objects(prep: _Prepared, t: float) -> None:
             prep.params[key] = mi.Transform4f(m.tolist())
         else:
             prep.params[key] = mi.Float((base + tr * t).astype(np.float32).reshape(-1))
+            if key in prep.normals:
+                # New vertex positions alone make Mitsuba recompute the vertex normals from the
+                # faces: a moved mesh then shades with other normals than the loaded one (0.12
+                # apart on a procedural mesh), and the recomputation sums with atomics, so
+                # reference renders differed run to run (~1e-6). A translation keeps the
+                # normals: hand the loaded ones back (a fresh array, else the update skips it).
+                nkey, normals = prep.normals[key]
+                prep.params[nkey] = mi.Float(normals)
     prep.params.update()
 
 
