@@ -91,7 +91,7 @@ def test_network_input_is_ldr_and_scaled() -> None:
     torch.testing.assert_close(x[:, :3], tonemap_ldr(b["radiance"]))
     torch.testing.assert_close(x[:, 3:6], b["albedo"])
     torch.testing.assert_close(x[:, 6:9], (b["normal"] + 1) / 2)
-    torch.testing.assert_close(x[:, 9].amax(dim=(1, 2)), torch.ones(2))
+    torch.testing.assert_close(x[:, 9], b["depth"][:, 0] / (1 + b["depth"][:, 0]))
 
 
 def test_constant_irradiance_is_preserved_through_demodulation() -> None:
@@ -341,3 +341,18 @@ def test_missing_channel_named_and_folded_checkpoint_loads() -> None:
     b = synthetic_batch(model, height=6, width=6)
     with torch.no_grad():
         torch.testing.assert_close(fresh(b), folded(b))
+
+
+@pytest.mark.parametrize("name", ["wskp", "wskp_mr"])
+def test_depth_feature_does_not_depend_on_the_crop(name: str) -> None:
+    """Catches a per-image (per-crop) depth normalisation: tiles of one image would then see
+    different depth scales and the tiled output would show seams (issue 8 item 6, for WSKP)."""
+    from mcdenoise.models.wskp import wskp_input
+
+    model = build_model(name, "small")
+    batch = synthetic_batch(model, batch=1, height=24, width=24, generator=torch.Generator().manual_seed(5))
+    batch["depth"][..., :, :12] *= 50.0  # far background on the left half only
+    whole, _, _ = wskp_input(batch, 0.05)
+    crop = {k: v[..., 12:, 12:] for k, v in batch.items()}
+    part, _, _ = wskp_input(crop, 0.05)
+    torch.testing.assert_close(part, whole[..., 12:, 12:], rtol=0, atol=1e-6)

@@ -6,7 +6,7 @@ Per frame (Sec. 4, 5.1):
    effective albedo of :func:`effective_albedo` (the albedo itself on surfaces, 1 where the albedo
    is 0: sky, background, emitters);
 2. the ImportanceNet (RepVGG blocks, 14 channels) reads a 10-channel LDR input: tonemapped colour
-   (3), albedo (3), normal scaled to [0, 1] (3), depth scaled to [0, 1] per image (1);
+   (3), albedo (3), normal scaled to [0, 1] (3), depth as d / (1 + d) (1; crop-independent);
 3. it predicts N importance maps and N fusion logits; map i becomes a softmax kernel of size
    ``k_i`` (Eq. 3), the irradiance is filtered with each (Eq. 4) and the results are averaged with
    the per-pixel softmax of the fusion logits (Eq. 5) -- all inside
@@ -85,9 +85,11 @@ def wskp_input(
         raise ValueError(f"WSKP: batch lacks channels {missing}")
     radiance = batch["radiance"]
     albedo = batch["albedo"]
-    depth = batch["depth"]
-    dmax = depth.abs().amax(dim=(1, 2, 3), keepdim=True).clamp_min(1e-8)
-    x = torch.cat([tonemap_ldr(radiance), albedo, (batch["normal"] + 1) * 0.5, depth / dmax], dim=1)
+    # A fixed compressive map, not the paper's per-image [0, 1] scaling: a per-image maximum
+    # depends on the crop or tile the network sees, so tiles of one image would disagree (seams).
+    depth = batch["depth"].clamp_min(0)
+    depth = depth / (1 + depth)  # in [0, 1) like the paper's range
+    x = torch.cat([tonemap_ldr(radiance), albedo, (batch["normal"] + 1) * 0.5, depth], dim=1)
     a = effective_albedo(albedo, batch["normal"], threshold)
     return x, radiance / a, a
 
