@@ -414,7 +414,7 @@ def render_dataset(
     todo = {i: [p for p in image_paths(cfg, i) if p not in done] for i in indices}
     todo = {i: ps for i, ps in todo.items() if ps}
     total = sum(len(v) for v in todo.values())
-    skipped = len(indices) * cfg.frames - total
+    skipped = sum(len(image_paths(cfg, i)) for i in indices) - total
     if log is not None:
         log(f"{root}: shard {shard}/{shards}: {total} image(s) to render, {skipped} already done"
             + (f", removed {len(removed)} partial leftover(s)" if removed else ""))
