@@ -9,7 +9,8 @@ still runs and produces finite images of the right shape. For each one the runne
 2. applies the patch there; an anchor that does not match exactly the expected number of times is
    reported loudly as ``ANCHOR`` (the code moved: update the mutation), never skipped;
 3. runs the model family's test files (``tests/test_model_<family>*.py``) plus
-   ``tests/test_models_common.py`` and ``tests/test_model_invariants.py`` in the copy, with
+   ``tests/test_models_common.py`` and ``tests/test_model_invariants.py`` (plus the mutation's own
+   ``extra_tests``, e.g. ``tests/test_ops_kernels.py`` for a patch of an op) in the copy, with
    ``PYTHONPATH`` pointing at the copy (the copy's ``mcdenoise`` is checked to be the one imported);
 4. prints one line: ``KILLED`` with the failing tests, or ``SURVIVED``.
 
@@ -23,6 +24,7 @@ Run from the repository root (about 1-2 minutes per mutation on 2 idle cores, 2 
     .venv/bin/python tests/mutations.py --list          # names and what each one breaks
     .venv/bin/python tests/mutations.py --check-anchors # only check that every patch applies
     .venv/bin/python tests/mutations.py sbmc_first_unet_step_only kpcn_relu_on_kernel_logits
+    .venv/bin/python tests/mutations.py --workers 1 regress_bug1_splat_neighbourhood_shift
     .venv/bin/python tests/mutations.py --first-failure # stop each run at its first failing test
     .venv/bin/python tests/mutations.py --tests tests/test_models_common.py  # what one file catches
 
@@ -68,15 +70,20 @@ class Edit:
 
 @dataclass(frozen=True)
 class Mutation:
+    """``edits`` applied together; the tests run are the family's, the common ones and ``extra_tests``
+    (test files of the ops a patch touches, which the family's own files may not exercise)."""
+
     name: str
     what: str
     family: str
     edits: tuple[Edit, ...]
+    extra_tests: tuple[str, ...] = ()
 
 
 SBMC, LAYER, KPCN, WSKP, WSKP_MR, BLOCKS = (
     f"mcdenoise/models/{m}.py" for m in ("sbmc", "layer", "kpcn", "wskp", "wskp_mr", "blocks")
 )
+KERNELS, IMPORTANCE, TEMPORAL = (f"mcdenoise/ops/{m}.py" for m in ("kernels", "importance", "temporal"))
 
 #: The mutations of issue 8 item 13 (each passed the whole suite when the audit ran), in its order.
 #: Where the issue names no model, each model that has the mechanism gets its own mutation.
@@ -195,6 +202,85 @@ MUTATIONS: tuple[Mutation, ...] = (
         "wskp",
         (Edit(WSKP_MR, "torch.sigmoid(z[:, 2 * n : 2 * n + 1])", "z[:, 2 * n : 2 * n + 1]"),),
     ),
+    # Extra mutations beyond the issue's list: variants that break one code path only, and
+    # regressions that put back the bugs issue 8 reported as fixed (bugs 1, 3 and 4). They were kept
+    # in benchmarks/mutate_sbmc.py and benchmarks/mutate_wskp.py before those merged into this file.
+    Mutation(
+        "sbmc_first_unet_step_only_inference",
+        "SBMC runs only the first U-Net step in the banded inference loop (training path intact)",
+        "sbmc",
+        (
+            Edit(
+                SBMC,
+                "            ctx = unet(e.mean(dim=1))\n            for y0",
+                "            ctx = unet(e.mean(dim=1)) if ctx.numel() == 0 else ctx\n            for y0",
+            ),
+        ),
+    ),
+    Mutation(
+        "sbmc_kernel_head_built_without_context",
+        "the SBMC kernel head is built without a context input (so it silently ignores the context)",
+        "sbmc",
+        (Edit(SBMC, "hidden + [k2], context_channels=d,", "hidden + [k2], context_channels=0,"),),
+    ),
+    Mutation(
+        "sbmc_radiance_split_not_log_compressed",
+        "radiance and its diffuse/specular split fed without log compression (SBMC)",
+        "sbmc",
+        (Edit(SBMC, '_LOG_CHANNELS = frozenset({"radiance", "diffuse", "specular", ', "_LOG_CHANNELS = frozenset({"),),
+    ),
+    Mutation(
+        "wskp_repvgg_identity_removed_forward_only",
+        "RepVGG identity branch skipped in the unfused forward only (reparameterize() still folds it)",
+        "wskp",
+        (Edit(WSKP, "                y = y + self.identity(x)", "                y = y"),),
+    ),
+    Mutation(
+        "regress_bug1_splat_neighbourhood_shift",
+        "issue 8 bug 1 back: splat shift = max of any sample's logits within K x K of the destination",
+        "sbmc",
+        (
+            Edit(
+                KERNELS,
+                "        plane = destination_max(logits, k)\n",
+                "        plane = destination_max(logits.amax(2, keepdim=True).expand_as(logits), k)\n",
+            ),
+        ),
+        extra_tests=("tests/test_ops_kernels.py",),
+    ),
+    Mutation(
+        "regress_bug1_gather_max_over_outside_taps",
+        "issue 8 bug 1 (gather form) back: per-pixel shift taken over taps that read outside the image",
+        "sbmc",
+        (Edit(KERNELS, '.masked_fill(~inside, float("-inf")).amax(dim=1)', ".amax(dim=1)"),),
+        extra_tests=("tests/test_ops_kernels.py",),
+    ),
+    Mutation(
+        "regress_bug3_importance_image_wide_shift",
+        "issue 8 bug 3 back: importance sums shifted by the image-wide max instead of per window",
+        "wskp",
+        (
+            Edit(
+                IMPORTANCE,
+                "    shift = F.max_pool2d(log_w.detach(), kernel, stride=1, padding=padding)",
+                "    shift = log_w.detach().amax(dim=(-2, -1), keepdim=True).expand_as(log_w)",
+            ),
+        ),
+        extra_tests=("tests/test_ops_importance.py",),
+    ),
+    Mutation(
+        "regress_bug4_demodulate_albedo_plus_eps",
+        "issue 8 bug 4 back: WSKP demodulates by albedo + eps instead of the effective albedo",
+        "wskp",
+        (Edit(WSKP, "    return torch.maximum(a, 1 - a / threshold)", "    return albedo + 0.00316"),),
+    ),
+    Mutation(
+        "temporal_fixed_alpha",
+        "temporal blend uses the fixed alpha from the first frame on (history length ignored)",
+        "wskp",
+        (Edit(TEMPORAL, "    return torch.clamp(1.0 / n, min=alpha)", "    return torch.full_like(n, alpha)"),),
+        extra_tests=("tests/test_temporal.py",),
+    ),
 )
 
 
@@ -249,6 +335,15 @@ def make_copy(dst: Path, files: list[str]) -> None:
 def test_files(family: str, files: list[str]) -> list[str]:
     own = sorted(f for f in files if re.fullmatch(rf"tests/test_model_{re.escape(family)}[a-z0-9_]*\.py", f))
     return own + [f for f in COMMON_TESTS if f in files]
+
+
+def mutation_tests(m: Mutation, files: list[str]) -> list[str]:
+    """The family's and common test files, then ``m.extra_tests`` (a missing one is an anchor error)."""
+    missing = [t for t in m.extra_tests if t not in files]
+    if missing:
+        raise AnchorError(f"extra test file(s) {missing} not found: update this mutation")
+    base = test_files(m.family, files)
+    return base + [t for t in m.extra_tests if t not in base]
 
 
 def _env(copy: Path, threads: int) -> dict[str, str]:
@@ -327,9 +422,11 @@ def run_one(mutation: Mutation | None, files: list[str], tests: list[str], args:
 def check_anchors() -> list[tuple[Mutation, str]]:
     """Apply every mutation to the working tree's text in memory; (mutation, problem) per failure."""
     problems = []
+    files = source_files()
     for m in MUTATIONS:
         texts: dict[str, str] = {}
         try:
+            mutation_tests(m, files)
             for edit in m.edits:
                 file = ROOT / edit.path
                 if not file.is_file():
@@ -376,7 +473,10 @@ def main(argv: list[str] | None = None) -> int:
     workers = max(1, min(args.workers, MAX_WORKERS, len(chosen)))
     threads = 1 if workers > 1 else 2
     files = source_files()
-    plan = {m.name: list(args.tests) if args.tests else test_files(m.family, files) for m in chosen}
+    try:
+        plan = {m.name: list(args.tests) if args.tests else mutation_tests(m, files) for m in chosen}
+    except AnchorError as e:
+        p.error(str(e))
 
     if not args.skip_baseline:
         union = sorted({t for ts in plan.values() for t in ts})
