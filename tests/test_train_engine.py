@@ -168,6 +168,24 @@ def test_metrics_log_drops_rows_after_checkpoint_and_torn_line(tmp_path: Path) -
     assert png is not None and png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
+def test_loss_png_with_and_without_matplotlib(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Catches a loss.png that breaks on either drawing path (labelled matplotlib figure, or the
+    numpy fallback where matplotlib is missing), or a half-written PNG left behind."""
+    import sys
+
+    log = MetricsLog(tmp_path, 0, tensorboard=False)
+    for s in range(1, 41):
+        log.write({"step": s, "phase": "branches" if s <= 30 else "image", "loss": 1.0 / s, "lr": 1e-3,
+                   **({"val_relmse": 0.5 / s} if s % 10 == 0 else {})})
+    log.close()
+    for label in ("matplotlib", "fallback"):
+        if label == "fallback":
+            monkeypatch.setitem(sys.modules, "matplotlib", None)  # import matplotlib -> ImportError
+        png = plot_loss(tmp_path / "metrics.csv", tmp_path / f"{label}.png")
+        assert png is not None and png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", label
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["fallback.png", "matplotlib.png", "metrics.csv"]
+
+
 def test_resume_refuses_changed_settings() -> None:
     """Catches a resume that silently continues with another learning rate or dataset."""
     a = {"train": TrainConfig(model="kpcn", data="d", lr=1e-3).to_json(), "manifest_sha256": "x", "model_config": {}}

@@ -108,16 +108,70 @@ def _line(img: np.ndarray, x0: float, y0: float, x1: float, y1: float, rgb: tupl
     img[ys[ok], xs[ok]] = rgb
 
 
-def plot_loss(metrics_path: Path, out_png: Path) -> Path | None:
-    """Draw ``loss.png``: training loss per step (light), its running mean (dark), and validation
-    relMSE (red dots, own scale), log-scaled y, steps on x. No dependency beyond numpy and zlib.
+def _plot_matplotlib(rows: list[dict[str, str]], out_png: Path) -> Path | None:
+    """``loss.png`` with labelled axes: loss per step and its running mean (log y, left axis, one
+    colour per training phase) and validation relMSE (right axis). None without matplotlib."""
+    try:
+        import matplotlib
 
-    Axis text is omitted; the numbers are in ``metrics.csv``. Returns None when there is nothing
-    to plot yet.
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        return None
+    from mcdenoise.io.atomic import atomic_file
+
+    pts = [(int(r["step"]), float(r["loss"]), r.get("phase", "")) for r in rows
+           if r["loss"] not in ("", "nan", "inf")]
+    pts = [p for p in pts if p[1] > 0 and math.isfinite(p[1])]
+    if len(pts) < 2:
+        return None
+    fig, ax = plt.subplots(figsize=(8, 4.5), dpi=100)
+    phases = list(dict.fromkeys(p[2] for p in pts))
+    for i, ph in enumerate(phases):
+        st = np.array([p[0] for p in pts if p[2] == ph], float)
+        v = np.array([p[1] for p in pts if p[2] == ph])
+        colour = f"C{i}"
+        ax.plot(st, v, color=colour, alpha=0.3, lw=0.8)
+        k = max(1, len(v) // 25)
+        if len(v) >= k:
+            ax.plot(st[k - 1 :], np.convolve(v, np.ones(k) / k, mode="valid"), color=colour, lw=1.8,
+                    label=f"training loss ({ph})" if ph else "training loss")
+    ax.set_yscale("log")
+    ax.set_xlabel("step")
+    ax.set_ylabel("training loss")
+    ax.grid(True, which="both", alpha=0.3)
+    val = [(int(r["step"]), float(r["val_relmse"])) for r in rows if r.get("val_relmse") not in (None, "")]
+    val = [(s, v) for s, v in val if v > 0 and math.isfinite(v)]
+    handles, labels = ax.get_legend_handles_labels()
+    if val:
+        ax2 = ax.twinx()
+        ax2.plot([s for s, _ in val], [v for _, v in val], "o-", color="C3", ms=4, label="validation relMSE")
+        ax2.set_yscale("log")
+        ax2.set_ylabel("validation relMSE")
+        h2, l2 = ax2.get_legend_handles_labels()
+        handles, labels = handles + h2, labels + l2
+    ax.legend(handles, labels, loc="upper right", fontsize=8)
+    fig.tight_layout()
+    with atomic_file(out_png) as tmp:
+        fig.savefig(tmp, format="png")
+    plt.close(fig)
+    return Path(out_png)
+
+
+def plot_loss(metrics_path: Path, out_png: Path) -> Path | None:
+    """Draw ``loss.png``: training loss per step, its running mean, and validation relMSE (own
+    scale), log-scaled y, steps on x.
+
+    With matplotlib (a dependency of the package) the axes are labelled; without it a plain
+    numpy + zlib drawing without axis text is written (the numbers are in ``metrics.csv``).
+    Returns None when there is nothing to plot yet.
     """
     from mcdenoise.io.exr import write_png
 
     rows = read_metrics(metrics_path)
+    drawn = _plot_matplotlib(rows, out_png)
+    if drawn is not None:
+        return drawn
     pts = [(int(r["step"]), float(r["loss"])) for r in rows if r["loss"] not in ("", "nan", "inf")]
     pts = [(s, v) for s, v in pts if v > 0 and math.isfinite(v)]
     if len(pts) < 2:
