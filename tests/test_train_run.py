@@ -122,7 +122,7 @@ def test_run_folder_refusals(tiny: Path, tmp_path: Path, capsys: pytest.CaptureF
         _one_line_error(capsys, ["train", *RUN, "--data", str(tiny), "--out", str(tmp_path / "z"), "--device", "cuda"], "CUDA")
 
 
-@pytest.mark.slow
+# In the default run (about 11 s on 2 idle cores): CI must see that torchrun training still works.
 def test_two_processes_train_like_one_with_the_whole_batch(tiny: Path, tmp_path: Path) -> None:
     """Catches ranks reading overlapping rows, gradients summed instead of averaged, ranks
     drifting apart, or a rank other than 0 writing the run folder: torchrun with 2 gloo processes
