@@ -16,7 +16,7 @@ from pathlib import Path
 
 #: Printed at the end until their issues land.
 NOT_BUILT = (
-    "training and shipped weights (mcdenoise train): the denoisers below are untrained",
+    "shipped weights: the denoisers above are untrained (train your own: mcdenoise train, docs/TRAINING.md)",
     "mcdenoise denoise, mcdenoise eval (HTML report), mcdenoise bench",
 )
 
