@@ -75,20 +75,13 @@ def splat_into_(values: Tensor, weights: Tensor, acc: Tensor, row0: int = 0) -> 
     k = _check(values, weights, "splat_into_")
     if torch.is_grad_enabled() and (values.requires_grad or weights.requires_grad):
         raise RuntimeError("splat_into_ is inference-only; use splat() where gradients are needed")
-    b, s, c, h, w = values.shape
+    b, _, c, h, w = values.shape
     r = k // 2
     if acc.dim() != 4 or acc.shape[0] != b or acc.shape[1] != c + 1 or acc.shape[-1] != w + 2 * r:
         raise ValueError(f"splat_into_: acc must be (B, C+1, H+2r, W+2r) with B={b}, C+1={c + 1}, W+2r={w + 2 * r}")
     if row0 < 0 or row0 + h + 2 * r > acc.shape[2]:
         raise ValueError(f"splat_into_: rows {row0}..{row0 + h} do not fit an accumulator of {acc.shape[2]} padded rows")
-    band = acc[:, :, row0 : row0 + h + 2 * r]
-    for si in range(s):
-        v = torch.cat([values[:, si], torch.ones_like(values[:, si, :1])], dim=1)  # (B, C+1, h, W)
-        ws = weights[:, si]
-        for i in range(k):
-            for j in range(k):
-                t = i * k + j
-                band[:, :, i : i + h, j : j + w].addcmul_(v, ws[:, t : t + 1])
+    _splat_add_(acc[:, :, row0 : row0 + h + 2 * r], values, weights, k)
     return acc
 
 
@@ -112,18 +105,25 @@ def _splat_core(values: Tensor, weights: Tensor, k: int) -> Tensor:
     One in-place multiply-add per sample and offset; the only temporary is one sample's values
     with a ones channel (a chunked ``(v * w).sum(samples)`` was 7x slower on CPU).
     """
-    b, s, c, h, w = values.shape
+    b, _, c, h, w = values.shape
     r = k // 2
     outp = values.new_zeros((b, c + 1, h + 2 * r, w + 2 * r))
-    for si in range(s):
+    _splat_add_(outp, values, weights, k)
+    return outp[:, :, r : r + h, r : r + w].contiguous()
+
+
+def _splat_add_(outp: Tensor, values: Tensor, weights: Tensor, k: int) -> None:
+    """Add the splat of values (B,S,C,h,W), weights (B,S,K*K,h,W) into ``outp`` (B, C+1, h+2r, W+2r),
+    padded by ``r = K // 2`` on every side, in place: numerator channels then the weight sum."""
+    h, w = values.shape[-2:]
+    for si in range(values.shape[1]):
         # The ones channel turns the weight sum into one more channel of the same multiply-add.
-        v = torch.cat([values[:, si], torch.ones_like(values[:, si, :1])], dim=1)  # (B, C+1, H, W)
+        v = torch.cat([values[:, si], torch.ones_like(values[:, si, :1])], dim=1)  # (B, C+1, h, W)
         ws = weights[:, si]
         for i in range(k):
             for j in range(k):
                 t = i * k + j
                 outp[:, :, i : i + h, j : j + w].addcmul_(v, ws[:, t : t + 1])
-    return outp[:, :, r : r + h, r : r + w].contiguous()
 
 
 class _SplatFn(torch.autograd.Function):
