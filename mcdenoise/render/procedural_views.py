@@ -98,10 +98,11 @@ def scale_loaded_emitters(scene: Any, scene_dict: dict, k: float = 1.0) -> list[
             params[f"{sid}.data"] = params[f"{sid}.data"] * float(k)
             done.append(f"{sid}.data")
         elif t == "sunsky":
-            for k in ("sun_scale", "sky_scale"):
-                params[f"{sid}.{k}"] = float(node.get(k, 1.0))
-                done.append(f"{sid}.{k}")
-    missing = [k for k in done if k not in keys]
+            # Not ``k``: that is the factor, still needed by an envmap later in the dict.
+            for name in ("sun_scale", "sky_scale"):
+                params[f"{sid}.{name}"] = float(node.get(name, 1.0))
+                done.append(f"{sid}.{name}")
+    missing = [key for key in done if key not in keys]
     if missing:
         raise KeyError(f"scale_loaded_emitters: the loaded scene has no parameter(s) {missing}")
     params.update()
