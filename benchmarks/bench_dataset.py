@@ -59,6 +59,7 @@ def main() -> int:
     if args.cold:  # before the first Dr.Jit import
         os.environ["DRJIT_CACHE_DIR"] = str(Path(tmp.name) / "drjit-cache")
 
+    from mcdenoise.cli.dataset import parse_objects
     from mcdenoise.data.format import read_image
     from mcdenoise.render import RenderSettings, load_scene, render_image
     from mcdenoise.render.procedural_dataset import DatasetConfig, image_paths, render_dataset
@@ -77,10 +78,9 @@ def main() -> int:
 
     render_cornell(max(2, args.cornell))
 
-    lo, _, hi = args.objects.partition("-")
     kw = {"views": args.views} if args.views != 1 else {}
     cfg = DatasetConfig(count=args.count, seed=args.seed, spp=args.spp, ref_spp=args.ref_spp, width=n, height=n,
-                        objects=(int(lo), int(hi or lo)), **kw)
+                        objects=parse_objects(args.objects), **kw)
     root = Path(tmp.name) / "ds"
     t0 = time.perf_counter()
     render_dataset(root, cfg, progress=False)
