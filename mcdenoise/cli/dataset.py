@@ -58,6 +58,8 @@ def parse_objects(text: str) -> tuple[int, int]:
 
 
 def add_parser(p: argparse.ArgumentParser) -> None:
+    from mcdenoise.cli.render import add_variant_argument
+
     p.add_argument("--out", type=Path, required=True, help="dataset folder (created; a rerun resumes it)")
     p.add_argument("--count", type=int, help="number of scenes to render (required unless --merge)")
     p.add_argument("--spp", type=int, default=8, help="samples per pixel of the per-sample input (default 8)")
@@ -70,8 +72,7 @@ def add_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--views", type=int, default=1,
                    help="camera views per scene, each its own image in the scene's split; kernels compile once per "
                         "scene (default 1)")
-    p.add_argument("--variant", choices=("auto", "llvm_ad_rgb", "cuda_ad_rgb"), default="auto",
-                   help="Mitsuba variant: auto = cuda_ad_rgb when a GPU is present, else llvm_ad_rgb (default auto)")
+    add_variant_argument(p)
     p.add_argument("--kind", choices=("indoor", "outdoor"), default=None, help="only this kind of scene (default both)")
     p.add_argument("--max-depth", type=int, default=6, help="path depth of input and reference (default 6)")
     p.add_argument("--objects", default="10-50", help="MIN-MAX objects per scene (default 10-50)")

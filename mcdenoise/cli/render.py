@@ -46,6 +46,13 @@ def parse_defines(items: list[str]) -> dict[str, str]:
     return out
 
 
+def add_variant_argument(p: argparse.ArgumentParser) -> None:
+    """``--variant`` (shared with ``mcdenoise dataset``). The choices spell out
+    ``mcdenoise.render._mitsuba.VARIANTS``: importing the render package here would make ``--help`` slow."""
+    p.add_argument("--variant", choices=("auto", "llvm_ad_rgb", "cuda_ad_rgb"), default="auto",
+                   help="Mitsuba variant: auto = cuda_ad_rgb when a GPU is present, else llvm_ad_rgb (default auto)")
+
+
 def add_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("scene", nargs="?", help="Mitsuba 3 scene file or built-in scene name (see --list)")
     p.add_argument("--list", action="store_true", help="list the built-in scenes and exit")
@@ -64,8 +71,7 @@ def add_parser(p: argparse.ArgumentParser) -> None:
                    help="comma-separated per-sample channels to keep (default: all; radiance always)")
     p.add_argument("--position", action="store_true", help="also store per-pixel world positions in noisy.exr")
     p.add_argument("--overwrite", action="store_true", help="replace an existing image folder")
-    p.add_argument("--variant", choices=("auto", "llvm_ad_rgb", "cuda_ad_rgb"), default="auto",
-                   help="Mitsuba variant: auto = cuda_ad_rgb when a GPU is present, else llvm_ad_rgb (default auto)")
+    add_variant_argument(p)
 
 
 def run(args: argparse.Namespace) -> int:
