@@ -264,19 +264,23 @@ class SBMC(Denoiser):
                 e[..., y0:y1, :] = fc(e[..., y0:y1, :], ctx[..., y0:y1, :])
         radiance = radiance.to(e.dtype)
         if cfg.splat:
+
+            def band_logits(y0: int, y1: int) -> torch.Tensor:
+                return self.kernel(e[..., y0:y1, :], ctx[..., y0:y1, :])
+
+            # One band: its logits are generated once and serve both passes. Several: each pass
+            # regenerates them band by band, and never two bands' logits exist at once.
+            kept = band_logits(*bands[0]) if len(bands) == 1 else None
             plane = e.new_full((b, h + 2 * r, w + 2 * r), float("-inf"))
-            logits = None
             for y0, y1 in bands:  # pass 1: max logit landing on each pixel
-                logits = self.kernel(e[..., y0:y1, :], ctx[..., y0:y1, :])
-                destination_max(logits, k, plane=plane, row0=y0)
-            if len(bands) > 1:
-                logits = None  # never two bands' logits at once
+                destination_max(band_logits(y0, y1) if kept is None else kept, k, plane=plane, row0=y0)
             acc = e.new_zeros((b, 4, h + 2 * r, w + 2 * r))
-            for y0, y1 in bands:  # pass 2: the same logits again (kept if one band), splatted
-                if logits is None or len(bands) > 1:
-                    logits = self.kernel(e[..., y0:y1, :], ctx[..., y0:y1, :])
-                weights = per_destination_exp(logits, k, plane, row0=y0, inplace=True)
+            for y0, y1 in bands:  # pass 2: the same logits again, exponentiated in place and splatted
+                weights = per_destination_exp(
+                    band_logits(y0, y1) if kept is None else kept, k, plane, row0=y0, inplace=True
+                )
                 splat_into_(radiance[..., y0:y1, :], weights, acc, row0=y0)
+                del weights
             num, wsum = acc[:, :3, r : r + h, r : r + w], acc[:, 3:, r : r + h, r : r + w]
             return normalize_splat(num, wsum, cfg.eps)
         # Gather (Fig. 5a): sample index s is its own 1-spp image; a ones channel gives the weight
