@@ -108,6 +108,18 @@ def _line(img: np.ndarray, x0: float, y0: float, x1: float, y1: float, rgb: tupl
     img[ys[ok], xs[ok]] = rgb
 
 
+def _loss_points(rows: list[dict[str, str]]) -> list[tuple[int, float, str]]:
+    """``(step, loss, phase)`` of every row with a positive finite loss (log-scale plottable)."""
+    pts = [(int(r["step"]), float(r["loss"]), r.get("phase", "")) for r in rows if r["loss"] not in ("", "nan", "inf")]
+    return [p for p in pts if p[1] > 0 and math.isfinite(p[1])]
+
+
+def _val_points(rows: list[dict[str, str]]) -> list[tuple[int, float]]:
+    """``(step, val_relmse)`` of every validation row with a positive finite value."""
+    val = [(int(r["step"]), float(r["val_relmse"])) for r in rows if r.get("val_relmse") not in (None, "")]
+    return [(s, v) for s, v in val if v > 0 and math.isfinite(v)]
+
+
 def _plot_matplotlib(rows: list[dict[str, str]], out_png: Path) -> Path | None:
     """``loss.png`` with labelled axes: loss per step and its running mean (log y, left axis, one
     colour per training phase) and validation relMSE (right axis). None without matplotlib."""
@@ -118,11 +130,7 @@ def _plot_matplotlib(rows: list[dict[str, str]], out_png: Path) -> Path | None:
         import matplotlib.pyplot as plt
     except ImportError:
         return None
-    from mcdenoise.io.atomic import atomic_file
-
-    pts = [(int(r["step"]), float(r["loss"]), r.get("phase", "")) for r in rows
-           if r["loss"] not in ("", "nan", "inf")]
-    pts = [p for p in pts if p[1] > 0 and math.isfinite(p[1])]
+    pts = _loss_points(rows)
     if len(pts) < 2:
         return None
     fig, ax = plt.subplots(figsize=(8, 4.5), dpi=100)
@@ -140,8 +148,7 @@ def _plot_matplotlib(rows: list[dict[str, str]], out_png: Path) -> Path | None:
     ax.set_xlabel("step")
     ax.set_ylabel("training loss")
     ax.grid(True, which="both", alpha=0.3)
-    val = [(int(r["step"]), float(r["val_relmse"])) for r in rows if r.get("val_relmse") not in (None, "")]
-    val = [(s, v) for s, v in val if v > 0 and math.isfinite(v)]
+    val = _val_points(rows)
     handles, labels = ax.get_legend_handles_labels()
     if val:
         ax2 = ax.twinx()
@@ -172,8 +179,7 @@ def plot_loss(metrics_path: Path, out_png: Path) -> Path | None:
     drawn = _plot_matplotlib(rows, out_png)
     if drawn is not None:
         return drawn
-    pts = [(int(r["step"]), float(r["loss"])) for r in rows if r["loss"] not in ("", "nan", "inf")]
-    pts = [(s, v) for s, v in pts if v > 0 and math.isfinite(v)]
+    pts = _loss_points(rows)
     if len(pts) < 2:
         return None
     img = np.full((_H, _W, 3), 255, np.uint8)
@@ -203,8 +209,7 @@ def plot_loss(metrics_path: Path, out_png: Path) -> Path | None:
     sx = steps[k - 1 :]
     for i in range(1, len(smooth)):
         _line(img, x_of(sx[i - 1]), y_of(smooth[i - 1]), x_of(sx[i]), y_of(smooth[i]), _SMOOTH_RGB)
-    val = [(int(r["step"]), float(r["val_relmse"])) for r in rows if r.get("val_relmse") not in (None, "")]
-    val = [(s, v) for s, v in val if v > 0 and math.isfinite(v)]
+    val = _val_points(rows)
     if val:
         lv = np.log10([v for _, v in val])
         a, b = float(lv.min()), float(lv.max())
