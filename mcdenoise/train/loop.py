@@ -26,7 +26,6 @@ from typing import Any
 import torch
 import torch.distributed as dist
 
-from mcdenoise.data.dataset import Dataset
 from mcdenoise.errors import McDenoiseError
 from mcdenoise.io.atomic import atomic_file
 from mcdenoise.models.registry import Denoiser, build_model
@@ -187,8 +186,6 @@ def _train(cfg: TrainConfig, out: Path, resume: bool, force: bool, on_step: Call
     except KeyError as e:
         raise ConfigError(str(e.args[0])) from None
     cfg = cfg.resolved(model.input_kind)
-    if not Dataset(data_dir).images("train"):
-        raise ConfigError(f"{data_dir}: no images in the train split")
     doc = config_document(cfg, model_config=_model_config_json(model), manifest_sha256=manifest_hash(data_dir), world_size=world)
     # Check the data against the settings (crop larger than an image, spp out of range...) before
     # the run folder exists, so a typo does not leave a run that then needs --force.
@@ -208,14 +205,14 @@ def _train(cfg: TrainConfig, out: Path, resume: bool, force: bool, on_step: Call
     if err is not None:
         raise err
 
-    start, ok = 0, True
+    start = 0
     if rank == 0:
         try:
             start, _ = prepare_run_dir(out, doc, resume=resume, force=force)
         except McDenoiseError:
             _broadcast_start(0, False, distributed, device)
             raise
-    start = _broadcast_start(start, ok, distributed, device)
+    start = _broadcast_start(start, True, distributed, device)
 
     model.to(device)
     trainer = Trainer(model, cfg, device, distributed)
@@ -262,14 +259,15 @@ def _train(cfg: TrainConfig, out: Path, resume: bool, force: bool, on_step: Call
             if outcome.skipped:
                 print(f"step {done}: non-finite loss or gradient, update skipped ({skipped} so far)", file=sys.stderr)
             last = done == cfg.steps
-            if (cfg.val_every and done % cfg.val_every == 0) or last:
+            validating = bool(cfg.val_every and done % cfg.val_every == 0) or last
+            if validating:
                 val = trainer.validate(val_batches)
                 row.update({f"val_{k}": v for k, v in val.items()})
             log.write(row)
             if done % cfg.checkpoint_every == 0 or last:
                 save_checkpoint(out, done, model, trainer.state(done, skipped, wall_before + now - t_start))
                 prune_checkpoints(out, cfg.keep_every)
-            if (cfg.val_every and done % cfg.val_every == 0) or last:
+            if validating:
                 plot_loss(log.path, out / "loss.png")
             if math.isfinite(outcome.loss):
                 ema = outcome.loss if ema is None else 0.9 * ema + 0.1 * outcome.loss
