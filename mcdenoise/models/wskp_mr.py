@@ -87,7 +87,11 @@ class WSKPMR(Denoiser):
         """Per level, finest first: importance maps (B, N, H_l, W_l), fusion logits (B, N, H_l, W_l)
         and the Eq. 7 blend weight alpha (B, 1, H_l, W_l) in [0, 1] (None at the coarsest level).
         H_l, W_l: the padded size halved l times."""
-        f = self._pad(self.features(batch))
+        return self._levels(self.features(batch))
+
+    def _levels(self, x: torch.Tensor) -> list[tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]]:
+        """:meth:`predict` from the (B, 10, H, W) U-Net input ``x`` (so forward builds it once)."""
+        f = self._pad(x)
         skips = []
         for i, enc in enumerate(self.enc):
             if i > 0:
@@ -108,9 +112,9 @@ class WSKPMR(Denoiser):
         ]
 
     def forward(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
-        _, irr, albedo = wskp_input(batch, self.config.demod_threshold)
+        x, irr, albedo = wskp_input(batch, self.config.demod_threshold)
         h, w = irr.shape[-2:]
-        levels = self.predict(batch)
+        levels = self._levels(x)
         sizes = tuple(self.config.kernel_sizes)
         irrs = [self._pad(irr)]
         for _ in range(self.levels - 1):
