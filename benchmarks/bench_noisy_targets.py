@@ -28,7 +28,6 @@ cost is stored next to them in ``t_<pool>``). Prints one line per arm and writes
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import os
 import resource
@@ -37,6 +36,7 @@ import sys
 from pathlib import Path
 
 from mcdenoise.data.dataset import Dataset, write_manifest
+from mcdenoise.train.runlog import METRICS_FILE, read_metrics
 
 BIN = [str(Path(sys.executable).parent / "mcdenoise")]
 
@@ -98,9 +98,7 @@ def train_arm(work: Path, arm: str, data: Path, a: argparse.Namespace, steps: in
     if spp is not None:
         cmd += ["--spp", str(spp[0]), str(spp[1])]
     cpu = _run(cmd, work / f"log_run_{arm}")
-    with open(run / "metrics.csv") as f:
-        rows = [r for r in csv.DictReader(f) if r.get("val_relmse")]
-    return cpu, rows[-1]
+    return cpu, [r for r in read_metrics(run / METRICS_FILE) if r["val_relmse"]][-1]
 
 
 def main() -> None:
