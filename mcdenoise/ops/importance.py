@@ -79,7 +79,7 @@ def importance_filter_reference(image: Tensor, importance: Tensor, size: int) ->
     return gather_reference(image, importance_kernel_reference(importance, size))
 
 
-def _tap_slices(x: Tensor, size: int, axis: int, pad_value: float) -> tuple[Tensor, list[Tensor]]:
+def _tap_slices(x: Tensor, size: int, axis: int, pad_value: float) -> list[Tensor]:
     """Pad ``x`` by size // 2 on both ends of ``axis`` and return the k slices, one per window tap."""
     r = size // 2
     n = x.shape[axis]
@@ -87,7 +87,7 @@ def _tap_slices(x: Tensor, size: int, axis: int, pad_value: float) -> tuple[Tens
     pad[0 if axis == -1 else 2] = r
     pad[1 if axis == -1 else 3] = r
     xp = F.pad(x, pad, value=pad_value)
-    return xp, [xp.narrow(axis, t, n) for t in range(size)]
+    return [xp.narrow(axis, t, n) for t in range(size)]
 
 
 def box_sum(x: Tensor, size: int) -> Tensor:
@@ -101,8 +101,7 @@ def box_sum(x: Tensor, size: int) -> Tensor:
     lead = x.shape[:-2]
     y = x.reshape(-1, 1, *x.shape[-2:])
     for axis in (-1, -2):
-        _, taps = _tap_slices(y, size, axis, 0.0)
-        y = torch.stack(taps).sum(0) if size > 1 else y.clone()
+        y = torch.stack(_tap_slices(y, size, axis, 0.0)).sum(0) if size > 1 else y.clone()
     return y.reshape(*lead, *x.shape[-2:])
 
 
@@ -124,8 +123,8 @@ def _shifted_window_sum(values: Tensor, log_w: Tensor, size: int, axis: int) -> 
     padding = (0, r) if axis == -1 else (r, 0)
     # The shift cancels in the final ratio, so it carries no gradient: detach is exact.
     shift = F.max_pool2d(log_w.detach(), kernel, stride=1, padding=padding)
-    _, lw_taps = _tap_slices(log_w, size, axis, float("-inf"))
-    _, v_taps = _tap_slices(values, size, axis, 0.0)
+    lw_taps = _tap_slices(log_w, size, axis, float("-inf"))
+    v_taps = _tap_slices(values, size, axis, 0.0)
     # In-place accumulation halves the CPU time; autograd allows it (addcmul_ saves its factors,
     # not the accumulator).
     acc = torch.zeros_like(values)
