@@ -58,7 +58,7 @@ def describe(entry: ModelEntry, presets: list[str] | None = None, with_flops: bo
             if model.input_kind == "samples":
                 info["flops_spp"] = FLOPS_SPP
         if callable(getattr(model, "reparameterize", None)):
-            folded = entry.cls(entry.config(preset)).reparameterize()
+            folded = model.reparameterize()  # in place: the training form's figures are taken
             inference: dict[str, Any] = {"parameters": count_parameters(folded)}
             if with_flops:
                 inference["flops_per_pixel"] = flops_per_pixel(folded)
