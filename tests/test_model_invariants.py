@@ -14,15 +14,14 @@ import torch
 from mcdenoise.data.channels import base_name, is_variance_name
 from mcdenoise.models.registry import build_model, synthetic_batch
 
-#: Every model whose output is a normalised filter of its input radiance.
+#: Every model whose output is a normalised filter of its input radiance. Not dpcn: it predicts
+#: colours directly (no kernel), so the constant-image property does not hold for it.
 KERNEL_MODELS = [
-    "kpcn", "dpcn", "kpcn_single",
+    "kpcn", "kpcn_single",
     "sbmc", "sbmc_gather", "pixel_gather", "pixel_splat",
     "layer", "layer_weighted", "layer_optimized",
     "wskp", "wskp_mr",
 ]
-# dpcn predicts colours directly (no kernel), so the constant-image property does not hold for it.
-KERNEL_MODELS.remove("dpcn")
 
 
 def constant_batch(model: torch.nn.Module, *, spp: int = 4, size: int = 24) -> dict[str, torch.Tensor]:
