@@ -35,7 +35,7 @@ def _guides(shape: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:
 #: Tolerance for comparing two OIDN runs on the same pixels, relative to the output's maximum.
 #: Threaded OIDN is not promised to be bitwise repeatable (an exact comparison failed 2 of 8 full
 #: suite runs with OIDN 1.4.3, issue 8). Measured with OIDN 2.5.1 (pyoidn 2.5.1.0, 2 cores, all
-#: three qualities, /tmp/h10/measure_tol.py): 20 repeated runs and runs with 1-16 threads were
+#: three qualities, `benchmarks/bench_oidn.py tolerance`): 20 repeated runs and runs with 1-16 threads were
 #: identical, and a random walk of 1-16 ulp on every input moves the output by at most 3.4e-6 of
 #: its maximum, the scale any change of summation order produces. Reading the wrong pixels (the
 #: bug this guards against) moves it by 1.7-2.6x its maximum. 1e-4 sits 30x above the first and

@@ -110,7 +110,8 @@ def oidn_denoise(
         hdr: keep radiance above 1 (default). False only for tonemapped LDR input: OIDN then
             clamps to [0, 1].
         quality: one of :data:`QUALITIES`. ``fast`` took 1/1.85 of ``high``'s time at 1920x1080
-            with both guides on 2 cores, with 1.9x the relMSE on a synthetic image. On the CPU device
+            with both guides on 2 cores, with 1.9x the relMSE on a synthetic image
+            (``benchmarks/bench_oidn.py quality``). On the CPU device
             ``balanced`` gives ``high``'s exact pixels except with ``clean_aux`` and both guides
             (OIDN 2.3+ uses a larger prefilter there).
         clean_aux: the guides are noise-free (e.g. from a reference render); OIDN then skips
