@@ -18,7 +18,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import statistics
 import subprocess
 import sys
 import tempfile
@@ -26,17 +25,10 @@ import threading
 import time
 from pathlib import Path
 
+from _timing import median_time  # benchmarks/ is the script's folder
+
 REPO = Path(__file__).resolve().parent.parent
 XML = REPO / "tests" / "fixtures" / "scenes" / "thinlens_textured.xml"
-
-
-def _median_time(fn, repeats: int) -> float:
-    ts = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        ts.append(time.perf_counter() - t0)
-    return statistics.median(ts)
 
 
 def part_throughput(size: int, spp: int, repeats: int) -> list[str]:
@@ -72,9 +64,9 @@ def part_throughput(size: int, spp: int, repeats: int) -> list[str]:
 
         for f in (run_path, run_ours_film, run_samples):  # compile once
             f()
-        t_path = _median_time(run_path, repeats)
-        t_film = _median_time(run_ours_film, repeats)
-        t_smp = _median_time(run_samples, repeats)
+        t_path = median_time(run_path, repeats)
+        t_film = median_time(run_ours_film, repeats)
+        t_smp = median_time(run_samples, repeats)
         label = Path(name).name if os.sep in name else name
         rows.append(f"| {label} | {n / t_path / 1e6:.3f} | {n / t_film / 1e6:.3f} | {n / t_smp / 1e6:.3f} | {t_path / t_smp:.2f} |")
         dr.flush_malloc_cache()

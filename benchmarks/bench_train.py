@@ -24,10 +24,8 @@ import argparse
 import json
 import os
 import platform
-import statistics
 import sys
 import tempfile
-import time
 from pathlib import Path
 from typing import Any
 
@@ -36,22 +34,12 @@ import torch
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+from _timing import median_time  # noqa: E402  (benchmarks/ is the script's folder)
 from mcdenoise.models.info import count_parameters  # noqa: E402
 from mcdenoise.models.registry import build_model, list_models  # noqa: E402
 from mcdenoise.train.config import TrainConfig  # noqa: E402
 from mcdenoise.train.data import batch_source, training_batches  # noqa: E402
 from mcdenoise.train.trainer import Trainer, data_config  # noqa: E402
-
-
-def _median_time(fn: Any, warmup: int, steps: int) -> float:
-    for _ in range(warmup):
-        fn()
-    ts = []
-    for _ in range(steps):
-        t0 = time.perf_counter()
-        fn()
-        ts.append(time.perf_counter() - t0)
-    return statistics.median(ts)
 
 
 def bench_model(name: str, data: Path, args: argparse.Namespace, workers: int) -> dict[str, Any]:
@@ -66,14 +54,14 @@ def bench_model(name: str, data: Path, args: argparse.Namespace, workers: int) -
     source = batch_source(data, model, dcfg)
     ready = iter([{k: v.to(args.device) for k, v in source[t].items()} for t in range(args.warmup + args.steps)])
     step_counter = iter(range(10**9))
-    compute = _median_time(lambda: tr.step(next(ready), next(step_counter)), args.warmup, args.steps)
+    compute = median_time(lambda: tr.step(next(ready), next(step_counter)), args.steps, args.warmup)
 
     it = training_batches(data, model, dcfg, start_step=0, device=args.device)
-    data_s = _median_time(lambda: next(it), args.warmup, args.steps)
+    data_s = median_time(lambda: next(it), args.steps, args.warmup)
     del it
 
     it = training_batches(data, model, dcfg, start_step=10_000, device=args.device)
-    train_s = _median_time(lambda: tr.step(next(it), next(step_counter)), args.warmup, args.steps)
+    train_s = median_time(lambda: tr.step(next(it), next(step_counter)), args.steps, args.warmup)
     del it
     return {
         "model": name,
