@@ -3,8 +3,8 @@
 What exists today: the renderer writes an image folder of the data format; it is read back; Open
 Image Denoise is run as the baseline and both are scored against the reference with our metrics;
 every registered model (untrained, ``small`` preset) is run on the real buffers to show the
-data -> model path works. Training with shipped weights, ``denoise`` and the HTML report are the
-next issues, and the demo says so.
+data -> model path works (``mcdenoise train`` trains them). Shipped weights, ``denoise``, the
+HTML report and ``bench`` are the next issues, and the demo says so.
 """
 
 from __future__ import annotations
