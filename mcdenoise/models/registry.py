@@ -106,13 +106,31 @@ def list_models() -> list[ModelEntry]:
     return [MODELS[k] for k in sorted(MODELS)]
 
 
-def build_model(name: str, preset: str = "small", **overrides: Any) -> Denoiser:
-    """Instantiate a registered model from one of its presets, with field overrides."""
+def build_model(name: str, preset: str = "small", *, weights: str | None = None, **overrides: Any) -> Denoiser:
+    """Instantiate a registered model from one of its presets, with field overrides.
+
+    ``weights="shipped"`` loads the weights shipped for ``(name, preset)`` (the shipped model
+    card's configuration wins over the preset); a path loads that safetensors file (strict).
+    See :mod:`mcdenoise.models.weights`.
+    """
     _load_all()
     if name not in MODELS:
         raise KeyError(f"unknown model {name!r}; registered: {sorted(MODELS)}")
     entry = MODELS[name]
-    return entry.cls(entry.config(preset, **overrides))
+    if weights is None:
+        return entry.cls(entry.config(preset, **overrides))
+    from mcdenoise.models import weights as w
+
+    if weights == "shipped":
+        if overrides:
+            raise ValueError("build_model: shipped weights fix the configuration; no field overrides")
+        sw = w.shipped_weights(name, preset)
+        model = w.model_from_config(name, preset, sw.card.get("model_config"))
+        w.load_weights(model, sw.weights)
+        return model
+    model = entry.cls(entry.config(preset, **overrides))
+    w.load_weights(model, weights)
+    return model
 
 
 def synthetic_batch(

@@ -1,0 +1,197 @@
+"""Find and load trained weights: shipped with the package, from a run folder, or from a file.
+
+One resolver, :func:`load_denoiser`, turns what a user types into a ready model:
+
+* a registered name (``"wskp"``): the weights shipped in ``mcdenoise/models/shipped/`` for that
+  name (small preset unless ``preset`` says otherwise);
+* a run folder of ``mcdenoise train``: its ``config.json`` rebuilds the exact model configuration,
+  then ``model.safetensors`` (final) or else the newest complete checkpoint is loaded;
+* a ``.safetensors`` file: its metadata (``model``, ``preset``, and ``model_config`` when present)
+  names the model; otherwise ``model=`` must.
+
+Shipped weights are ``shipped/<name>-<preset>.safetensors`` with a model card
+``shipped/<name>-<preset>.json`` beside them (training and dataset commands, steps, wall time,
+device, test metrics). Weights are read with safetensors only, never unpickled.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from mcdenoise.errors import McDenoiseError
+from mcdenoise.models.registry import MODELS, Denoiser, _load_all
+
+__all__ = [
+    "SHIPPED_DIR",
+    "WeightsError",
+    "ShippedWeights",
+    "shipped",
+    "shipped_weights",
+    "load_weights",
+    "load_denoiser",
+    "model_from_config",
+]
+
+SHIPPED_DIR = Path(__file__).resolve().parent / "shipped"
+
+
+class WeightsError(McDenoiseError):
+    """Weights are missing, unreadable, or do not fit the model they are loaded into."""
+
+
+@dataclass(frozen=True)
+class ShippedWeights:
+    """One shipped model: ``weights`` (safetensors) and its parsed model ``card``."""
+
+    name: str
+    preset: str
+    weights: Path
+    card: dict[str, Any]
+
+
+def _card_path(weights: Path) -> Path:
+    return weights.with_suffix(".json")
+
+
+def shipped() -> list[ShippedWeights]:
+    """Every shipped model, sorted by name then preset (empty when none are shipped)."""
+    out = []
+    for w in sorted(SHIPPED_DIR.glob("*.safetensors")):
+        name, _, preset = w.stem.rpartition("-")
+        card: dict[str, Any] = {}
+        if _card_path(w).is_file():
+            try:
+                card = json.loads(_card_path(w).read_text())
+            except ValueError as e:
+                raise WeightsError(f"{_card_path(w)}: model card is not valid JSON ({e})") from None
+        out.append(ShippedWeights(name, preset, w, card))
+    return out
+
+
+def shipped_weights(name: str, preset: str = "small") -> ShippedWeights:
+    """The shipped weights of ``name`` at ``preset``; one-line error listing what is shipped."""
+    for s in shipped():
+        if s.name == name and s.preset == preset:
+            return s
+    have = ", ".join(f"{s.name} ({s.preset})" for s in shipped()) or "none"
+    raise WeightsError(f"no shipped weights for model {name!r} preset {preset!r}; shipped: {have}")
+
+
+def _coerce(default: Any, value: Any) -> Any:
+    """JSON turned tuples into lists; give fields back the container type of the preset's value."""
+    if isinstance(default, tuple) and isinstance(value, list):
+        return tuple(_coerce(d, v) for d, v in zip(default, value)) if len(default) == len(value) else tuple(value)
+    return value
+
+
+def model_from_config(name: str, preset: str, model_config: dict[str, Any] | None = None) -> Denoiser:
+    """Build ``name`` from ``preset``, then apply the saved ``model_config`` fields (a run's or a card's)."""
+    _load_all()
+    if name not in MODELS:
+        raise WeightsError(f"unknown model {name!r}; registered: {', '.join(sorted(MODELS))}")
+    entry = MODELS[name]
+    if preset not in entry.presets:
+        raise WeightsError(f"model {name!r} has no preset {preset!r}; presets: {', '.join(sorted(entry.presets))}")
+    cfg = entry.config(preset)
+    if model_config:
+        names = {f.name for f in dataclasses.fields(cfg)}
+        unknown = sorted(set(model_config) - names)
+        if unknown:
+            raise WeightsError(f"model {name!r}: saved configuration has fields this version lacks: {unknown}")
+        cfg = dataclasses.replace(cfg, **{k: _coerce(getattr(cfg, k), v) for k, v in model_config.items()})
+    return entry.cls(cfg)
+
+
+def load_weights(model: torch.nn.Module, path: str | Path) -> None:
+    """Load a safetensors state dict into ``model`` (strict); one-line error naming the file."""
+    from safetensors import SafetensorError
+    from safetensors.torch import load_file
+
+    path = Path(path)
+    if not path.is_file():
+        raise WeightsError(f"{path}: weights file not found")
+    try:
+        state = load_file(str(path))
+    except (SafetensorError, OSError, ValueError) as e:
+        raise WeightsError(f"{path}: not a readable safetensors file ({e})") from None
+    try:
+        model.load_state_dict(state, strict=True)
+    except RuntimeError as e:
+        first = str(e).strip().splitlines()
+        detail = " ".join(s.strip() for s in first[1:3]) if len(first) > 1 else first[0]
+        raise WeightsError(f"{path}: weights do not fit {type(model).__name__}: {detail[:300]}") from None
+
+
+def _metadata(path: Path) -> dict[str, str]:
+    from safetensors import SafetensorError, safe_open
+
+    try:
+        with safe_open(str(path), framework="pt") as f:
+            return dict(f.metadata() or {})
+    except (SafetensorError, OSError, ValueError) as e:
+        raise WeightsError(f"{path}: not a readable safetensors file ({e})") from None
+
+
+def _from_run(run: Path) -> tuple[Denoiser, dict[str, Any]]:
+    from mcdenoise.train.checkpoint import latest_checkpoint
+    from mcdenoise.train.loop import CONFIG_FILE, WEIGHTS_FILE
+
+    try:
+        doc = json.loads((run / CONFIG_FILE).read_text())
+    except (OSError, ValueError) as e:
+        raise WeightsError(f"{run / CONFIG_FILE}: cannot read the run's configuration ({e})") from None
+    train = doc.get("train") or {}
+    name, preset = train.get("model"), train.get("preset", "small")
+    if not isinstance(name, str):
+        raise WeightsError(f"{run / CONFIG_FILE}: no model name in the run's configuration")
+    model = model_from_config(name, preset, doc.get("model_config"))
+    weights = run / WEIGHTS_FILE
+    step: int | None = None
+    if not weights.is_file():
+        ck = latest_checkpoint(run)
+        if ck is None:
+            raise WeightsError(f"{run}: run has neither {WEIGHTS_FILE} nor a complete checkpoint")
+        weights, step = ck.path / "model.safetensors", ck.step
+    load_weights(model, weights)
+    if step is None:
+        step = int(_metadata(weights).get("step", train.get("steps", 0)) or 0)
+    return model, {"name": name, "preset": preset, "weights": str(weights), "source": "run", "step": step, "label": run.name}
+
+
+def load_denoiser(spec: str | Path, *, preset: str | None = None, model: str | None = None,
+                  device: torch.device | str = "cpu") -> tuple[Denoiser, dict[str, Any]]:
+    """Resolve ``spec`` (registered name, run folder or ``.safetensors`` file) to a model in eval mode.
+
+    Returns ``(model, info)``; ``info`` has ``name``, ``preset``, ``weights`` (path), ``source``
+    (``shipped``, ``run`` or ``file``), ``label`` (a short name for tables) and, for shipped
+    weights, ``card``.
+    """
+    _load_all()
+    s = str(spec)
+    p = Path(s)
+    if p.is_dir():
+        net, info = _from_run(p)
+    elif p.is_file() or s.endswith(".safetensors"):
+        meta = _metadata(p) if p.is_file() else {}
+        name = model or meta.get("model")
+        if not name:
+            raise WeightsError(f"{p}: weights file does not name its model (no 'model' metadata); pass model=")
+        pre = preset or meta.get("preset", "small")
+        cfg = json.loads(meta["model_config"]) if "model_config" in meta else None
+        net = model_from_config(name, pre, cfg)
+        load_weights(net, p)
+        info = {"name": name, "preset": pre, "weights": str(p), "source": "file", "label": p.stem}
+    elif s in MODELS:
+        sw = shipped_weights(s, preset or "small")
+        net = model_from_config(s, sw.preset, sw.card.get("model_config"))
+        load_weights(net, sw.weights)
+        info = {"name": s, "preset": sw.preset, "weights": str(sw.weights), "source": "shipped", "label": s, "card": sw.card}
+    else:
+        raise WeightsError(f"{s}: neither a registered model ({', '.join(sorted(MODELS))}), a run folder, nor a weights file")
+    return net.to(device).eval(), info
