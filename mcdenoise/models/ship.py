@@ -1,0 +1,187 @@
+"""Ship a trained run's weights inside the package, with a model card.
+
+    python -m mcdenoise.models.ship RUN_DIR [--eval REPORT_DIR/results.json] [--force]
+
+writes ``mcdenoise/models/shipped/<name>-<preset>.safetensors`` (the run's final weights, with
+``model``, ``preset`` and ``model_config`` in the safetensors metadata, so the file alone rebuilds
+the model) and ``<name>-<preset>.json``, the model card: the commands that reproduce the weights
+from scratch (dataset and training, rebuilt from the run's ``config.json`` and the dataset's
+``dataset.json``, so they are the settings that actually ran), steps, wall time, device, the last
+validation figures, and -- from an ``mcdenoise eval`` results file -- the metrics on the held-out
+test split with Open Image Denoise on the same images.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import hashlib
+import json
+import platform
+import shlex
+import sys
+from pathlib import Path
+from typing import Any
+
+from mcdenoise.errors import McDenoiseError
+from mcdenoise.io.atomic import atomic_file
+from mcdenoise.models.weights import SHIPPED_DIR, WeightsError, load_denoiser
+
+__all__ = ["dataset_command", "train_command", "model_card", "ship"]
+
+
+def dataset_command(data_dir: str | Path) -> str:
+    """The ``mcdenoise dataset`` command that renders ``data_dir`` again, from its dataset.json."""
+    p = Path(data_dir) / "dataset.json"
+    try:
+        d = json.loads(p.read_text())
+    except (OSError, ValueError) as e:
+        raise WeightsError(f"{p}: cannot read the dataset's settings ({e})") from None
+    size = d["width"] if d["width"] == d["height"] else f"{d['width']}x{d['height']}"
+    args = ["mcdenoise", "dataset", "--out", str(data_dir), "--count", str(d["count"]), "--spp", str(d["spp"]),
+            "--ref-spp", str(d["ref_spp"]), "--size", str(size), "--seed", str(d["seed"])]
+    if d.get("views", 1) != 1:
+        args += ["--views", str(d["views"])]
+    if d.get("frames", 1) != 1:
+        args += ["--frames", str(d["frames"])]
+    if d.get("kind"):
+        args += ["--kind", d["kind"]]
+    if d.get("max_depth", 6) != 6:
+        args += ["--max-depth", str(d["max_depth"])]
+    lo, hi = d.get("objects", [10, 50])
+    if [lo, hi] != [10, 50]:
+        args += ["--objects", f"{lo}-{hi}"]
+    args += ["--split", ",".join(f"{x:g}" for x in d["fractions"])]
+    return shlex.join(args)
+
+
+#: TrainConfig field -> CLI flag, for the fields a command must spell out when not at the default.
+_FLAGS = {"preset": "--preset", "steps": "--steps", "batch": "--batch", "crop": "--crop", "lr": "--lr", "loss": "--loss",
+          "target": "--target", "sampling": "--sampling", "seed": "--seed", "warmup": "--warmup",
+          "schedule": "--schedule", "clip_grad": "--clip-grad", "branch_fraction": "--branch-fraction", "amp": "--amp",
+          "val_every": "--val-every", "val_images": "--val-images", "workers": "--workers", "threads": "--threads"}
+
+
+def train_command(config_doc: dict[str, Any], out: str | Path) -> str:
+    """The ``mcdenoise train`` command with every setting of a run's config.json that differs from the defaults."""
+    from mcdenoise.train.config import TrainConfig
+
+    t = config_doc["train"]
+    default = TrainConfig().to_json()
+    args = ["mcdenoise", "train", "--model", t["model"], "--data", t["data"], "--out", str(out)]
+    for field, flag in _FLAGS.items():
+        if t.get(field) != default.get(field) and t.get(field) is not None:
+            args += [flag, f"{t[field]:g}" if isinstance(t[field], float) else str(t[field])]
+    if t.get("spp_range") and t.get("spp_range") != default.get("spp_range"):
+        args += ["--spp", *map(str, t["spp_range"])]
+    if not t.get("augment", True):
+        args.append("--no-augment")
+    return shlex.join(args)
+
+
+def _test_metrics(results: dict[str, Any], weights: str, label: str) -> dict[str, Any]:
+    """This model's mean metrics per spp and those of the baselines on the same images (eval's results.json)."""
+    means = results.get("means") or {}
+    methods = {m.get("label") or m.get("name"): m for m in results.get("methods", []) if isinstance(m, dict)}
+    mine = next((k for k, m in methods.items() if str(m.get("weights", "")).endswith(Path(weights).name) or k == label), label)
+    out: dict[str, Any] = {"data": results.get("data"), "split": results.get("split"), "images": results.get("images_count"),
+                           "oidn_version": results.get("oidn_version"), "spp": {}}
+    for spp, per_method in means.items():
+        row = {}
+        for k, v in per_method.items():
+            if k == mine:
+                row["model"] = v
+            elif k in ("noisy", "oidn_high", "oidn_fast", "classic") or k.startswith("oidn"):
+                row[k] = v
+        if "model" in row:
+            out["spp"][str(spp)] = row
+    return out
+
+
+def model_card(run_dir: Path, model: Any, info: dict[str, Any], results: dict[str, Any] | None) -> dict[str, Any]:
+    from mcdenoise.train.config import read_config
+    from mcdenoise.train.loop import CONFIG_FILE, RESULT_FILE
+
+    doc = read_config(run_dir / CONFIG_FILE)
+    res = json.loads((run_dir / RESULT_FILE).read_text()) if (run_dir / RESULT_FILE).is_file() else {}
+    t = doc["train"]
+    card: dict[str, Any] = {
+        "format": "mcdenoise-model-card",
+        "version": 1,
+        "name": info["name"],
+        "preset": info["preset"],
+        "model_config": doc.get("model_config"),
+        "inputs": list(model.required_channels()),
+        "input_kind": model.input_kind,
+        "parameters": sum(p.numel() for p in model.parameters()),
+        "dataset": {"command": dataset_command(t["data"]) if (Path(t["data"]) / "dataset.json").is_file() else None,
+                    "path": t["data"], "manifest_sha256": doc.get("manifest_sha256")},
+        "training": {
+            "command": train_command(doc, f"runs/{info['name']}"),
+            "steps": res.get("steps", t["steps"]),
+            "wall_s": res.get("wall_s"),
+            "device": res.get("device"),
+            "threads": t.get("threads"),
+            "world_size": doc.get("world_size"),
+            "torch_version": doc.get("torch_version"),
+            "mcdenoise_version": doc.get("mcdenoise_version"),
+            "machine": f"{platform.machine()} {platform.processor() or ''}".strip(),
+            "final_validation": res.get("val"),
+        },
+        "shipped": datetime.date.today().isoformat(),
+    }
+    if results is not None:
+        card["test"] = _test_metrics(results, info["weights"], info.get("label", ""))
+    return card
+
+
+def ship(run_dir: str | Path, *, results_json: str | Path | None = None, out_dir: Path = SHIPPED_DIR,
+         force: bool = False) -> tuple[Path, Path]:
+    """Copy ``run_dir``'s final weights into ``out_dir`` with a model card. Returns (weights, card)."""
+    from safetensors.torch import save_file
+
+    from mcdenoise.train.checkpoint import state_dict_for_safetensors
+
+    run = Path(run_dir)
+    if not (run / "model.safetensors").is_file():
+        raise WeightsError(f"{run}: no final model.safetensors (is the run finished?)")
+    model, info = load_denoiser(run)
+    results = None
+    if results_json is not None:
+        try:
+            results = json.loads(Path(results_json).read_text())
+        except (OSError, ValueError) as e:
+            raise WeightsError(f"{results_json}: cannot read eval results ({e})") from None
+    card = model_card(run, model, info, results)
+    stem = f"{info['name']}-{info['preset']}"
+    w_path, c_path = out_dir / f"{stem}.safetensors", out_dir / f"{stem}.json"
+    if w_path.exists() and not force:
+        raise WeightsError(f"{w_path}: shipped weights exist; pass --force to replace them")
+    out_dir.mkdir(parents=True, exist_ok=True)
+    meta = {"model": info["name"], "preset": info["preset"], "model_config": json.dumps(card["model_config"]),
+            "step": str(card["training"]["steps"])}
+    with atomic_file(w_path) as tmp:
+        save_file(state_dict_for_safetensors(model), str(tmp), metadata=meta)
+    card["weights_sha256"] = hashlib.sha256(w_path.read_bytes()).hexdigest()
+    with atomic_file(c_path) as tmp:
+        tmp.write_text(json.dumps(card, indent=1) + "\n")
+    return w_path, c_path
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m mcdenoise.models.ship", description=__doc__.strip().splitlines()[0])
+    p.add_argument("run", type=Path, help="finished run folder of `mcdenoise train`")
+    p.add_argument("--eval", type=Path, help="results.json of `mcdenoise eval` that includes this run")
+    p.add_argument("--force", action="store_true", help="replace shipped weights of the same name and preset")
+    a = p.parse_args(argv)
+    try:
+        w, c = ship(a.run, results_json=a.eval, force=a.force)
+    except McDenoiseError as e:
+        print(f"ship: error: {e}", file=sys.stderr)
+        return 1
+    print(f"wrote {w} ({w.stat().st_size / 1e6:.2f} MB) and {c}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

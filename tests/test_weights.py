@@ -1,0 +1,126 @@
+"""Loading weights by name, run folder or file, and shipping a run with its model card."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shlex
+from pathlib import Path
+
+import pytest
+import torch
+from safetensors.torch import save_file
+
+from mcdenoise.cli import dataset as dataset_cli
+from mcdenoise.cli import train as train_cli
+from mcdenoise.models import build_model, synthetic_batch
+from mcdenoise.models import weights as W
+from mcdenoise.models.ship import dataset_command, ship, train_command
+from mcdenoise.render.procedural_dataset import DatasetConfig
+from mcdenoise.train import train
+from mcdenoise.train.checkpoint import state_dict_for_safetensors
+from mcdenoise.train.config import RUNTIME_FIELDS, TrainConfig
+from train_tiny_data import make_tiny_dataset
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A finished 3-step WSKP run whose model config differs from the preset (channels=6)."""
+    root = tmp_path_factory.mktemp("weights")
+    data = make_tiny_dataset(root / "data", size=24)
+    cfg = TrainConfig(model="wskp", data=str(data), steps=3, batch=2, crop=16, workers=0, val_every=0,
+                      threads=1, target="noisy", loss="relmse", spp_range=(2, 4), progress=False)
+    out = root / "run"
+    # A non-preset field proves that the run's saved config, not the preset, rebuilds the model.
+    import mcdenoise.models.registry as reg
+
+    entry = reg.MODELS["wskp"]
+    orig = entry.presets["small"]
+    entry.presets["small"] = lambda: __import__("dataclasses").replace(orig(), channels=6)
+    try:
+        train(cfg, out)
+    finally:
+        entry.presets["small"] = orig
+    return out
+
+
+def _out(model: torch.nn.Module) -> torch.Tensor:
+    with torch.no_grad():
+        return model(synthetic_batch(model, height=16, width=16))
+
+
+def test_run_folder_rebuilds_the_saved_configuration(run: Path) -> None:
+    """Bug caught: a resolver that builds the preset and loads weights of another shape (or silently
+    ignores the run's model_config)."""
+    model, info = W.load_denoiser(run)
+    assert model.config.channels == 6 and info["source"] == "run" and info["step"] == 3
+    assert not model.training
+
+
+def test_shipped_weights_by_name_match_the_run(run: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Bug caught: shipped weights that load into a fresh model (wrong file, non-strict load) or a
+    card whose configuration is not applied; build_model(weights='shipped') must equal the run."""
+    monkeypatch.setattr(W, "SHIPPED_DIR", tmp_path)
+    w, c = ship(run, out_dir=tmp_path)
+    trained, _ = W.load_denoiser(run)
+    by_name = build_model("wskp", weights="shipped")
+    by_resolver, info = W.load_denoiser("wskp")
+    by_file, finfo = W.load_denoiser(w)  # the file alone names its model and configuration
+    ref = _out(trained)
+    for m in (by_name.eval(), by_resolver, by_file):
+        torch.testing.assert_close(_out(m), ref, rtol=0, atol=0)
+    assert info["source"] == "shipped" and finfo["source"] == "file"
+    card = json.loads(c.read_text())
+    assert card["model_config"]["channels"] == 6 and card["training"]["steps"] == 3
+    import hashlib
+
+    assert card["weights_sha256"] == hashlib.sha256(w.read_bytes()).hexdigest()
+    with pytest.raises(W.WeightsError, match="exist"):
+        ship(run, out_dir=tmp_path)
+
+
+def test_missing_and_mismatched_weights_are_one_line_errors(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Bug caught: a KeyError/RuntimeError traceback (or a silent partial load) instead of an error
+    that names the file."""
+    monkeypatch.setattr(W, "SHIPPED_DIR", tmp_path)
+    with pytest.raises(W.WeightsError, match="no shipped weights for model 'kpcn'"):
+        W.load_denoiser("kpcn")
+    bad = tmp_path / "x.safetensors"
+    save_file(state_dict_for_safetensors(build_model("kpcn")), str(bad), metadata={"model": "wskp", "preset": "small"})
+    with pytest.raises(W.WeightsError, match="do not fit") as e:
+        W.load_denoiser(bad)
+    assert str(bad) in str(e.value) and "\n" not in str(e.value)
+    (tmp_path / "junk.safetensors").write_bytes(b"not a tensor file")
+    with pytest.raises(W.WeightsError, match="not a readable"):
+        W.load_denoiser(tmp_path / "junk.safetensors", model="wskp")
+    with pytest.raises(W.WeightsError, match="neither"):
+        W.load_denoiser("no-such-model")
+
+
+def _parse(sub: object, cmd: str) -> argparse.Namespace:
+    p = argparse.ArgumentParser()
+    sub.add_parser(p)  # type: ignore[attr-defined]
+    argv = shlex.split(cmd)
+    assert argv[0] == "mcdenoise"
+    return p.parse_args(argv[2:])
+
+
+def test_card_commands_parse_back_to_the_settings_that_ran(run: Path, tmp_path: Path) -> None:
+    """Bug caught: a model card whose commands would not reproduce the weights (a misspelt flag, a
+    dropped non-default setting such as --spp or --target)."""
+    doc = json.loads((run / "config.json").read_text())
+    args = _parse(train_cli, train_command(doc, "runs/x"))
+    rebuilt = train_cli.config_from_args(args)
+    t = doc["train"]
+    got = {"model": args.model, "steps": args.steps, "batch": args.batch, "crop": args.crop, "target": args.target,
+           "loss": args.loss, "spp_range": list(args.spp) if args.spp else None, "lr": args.lr}
+    for k, v in got.items():
+        assert v == t[k], (k, v, t[k])
+    a = rebuilt.to_json()
+    keep = [k for k in a if k not in RUNTIME_FIELDS]
+    assert {k: a[k] for k in keep} == {k: t[k] for k in keep}
+
+    cfg = DatasetConfig(count=7, seed=3, spp=16, ref_spp=0, width=64, height=48, views=2, fractions=(0.8, 0.2, 0.0))
+    (tmp_path / "dataset.json").write_text(json.dumps(cfg.to_json()))
+    ns = _parse(dataset_cli, dataset_command(tmp_path))
+    assert (ns.count, ns.seed, ns.spp, ns.ref_spp, ns.size, ns.views, ns.split) == (7, 3, 16, 0, "64x48", 2, "0.8,0.2,0")
