@@ -7,7 +7,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -84,6 +84,9 @@ class TrainConfig:
     """Registered model name (``mcdenoise models`` lists them)."""
     preset: str = "small"
     """Model preset (``small`` for CPU budgets, ``paper`` for the published sizes)."""
+    model_overrides: dict[str, Any] = field(default_factory=dict)
+    """Fields of the preset's model configuration replaced for this run, e.g. ``{"layers": 4}``
+    (ablations such as ``mcdenoise repro``); the run's ``model_config`` records the result."""
     data: str = ""
     """Dataset folder written by ``mcdenoise dataset`` (needs a ``train`` split; ``val`` for validation)."""
     steps: int = 2000
@@ -185,6 +188,8 @@ class TrainConfig:
     def to_json(self) -> dict[str, Any]:
         d = dataclasses.asdict(self)
         d["spp_range"] = list(self.spp_range) if self.spp_range is not None else None
+        # Tuples as lists, as they read back from config.json (a resume compares the two).
+        d["model_overrides"] = json.loads(json.dumps(self.model_overrides))
         return d
 
     @classmethod

@@ -29,6 +29,7 @@ import torch.distributed as dist
 from mcdenoise.errors import McDenoiseError
 from mcdenoise.io.atomic import atomic_file
 from mcdenoise.models.registry import Denoiser, build_model
+from mcdenoise.models.weights import WeightsError, model_from_config
 from mcdenoise.train.checkpoint import latest_checkpoint, load_checkpoint, prune_checkpoints, save_checkpoint, \
     state_dict_for_safetensors
 from mcdenoise.train.config import ConfigError, TrainConfig, check_resume_config, config_document, manifest_hash, read_config
@@ -182,9 +183,12 @@ def _train(cfg: TrainConfig, out: Path, resume: bool, force: bool, on_step: Call
         raise ConfigError(f"batch {cfg.batch} is not divisible by the {world} processes")
     torch.manual_seed(cfg.seed)
     try:
-        model = build_model(cfg.model, cfg.preset)
+        model = (model_from_config(cfg.model, cfg.preset, cfg.model_overrides) if cfg.model_overrides
+                 else build_model(cfg.model, cfg.preset))
     except KeyError as e:
         raise ConfigError(str(e.args[0])) from None
+    except WeightsError as e:  # an override names a field the model's config lacks
+        raise ConfigError(str(e)) from None
     cfg = cfg.resolved(model.input_kind)
     doc = config_document(cfg, model_config=_model_config_json(model), manifest_sha256=manifest_hash(data_dir), world_size=world)
     # Check the data against the settings (crop larger than an image, spp out of range...) before
