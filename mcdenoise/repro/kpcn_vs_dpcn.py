@@ -49,7 +49,7 @@ EXPERIMENT = Experiment(
            "(validation L1 against training hours, diffuse and specular networks; KPCN stopped after 50 hours)."),
     variants=(Variant("kpcn", "KPCN", "kpcn"), Variant("dpcn", "DPCN", "dpcn")),
     metric="l1",
-    steps=1200,
+    steps=1500,
     judge=judge,
     validations=8,
     notes=("Equal steps, not equal hours: KPCN's kernel costs a little more per step. Both use the engine's KPCN "

@@ -51,7 +51,7 @@ EXPERIMENT = Experiment(
               Variant("l4", "4 layers, alpha", "layer", (("layers", 4),)),
               Variant("weighted", "2 layers, weighted sum", "layer_weighted")),
     metric="relmse",
-    steps=300,
+    steps=1200,
     judge=judge,
     train_overrides=(("spp_range", (8, 8)),),
     paper_figures={"l2": {"relMSE": 0.0288, "SMAPE": 0.0350}, "l4": {"relMSE": 0.0313, "SMAPE": 0.0361},

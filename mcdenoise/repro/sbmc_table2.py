@@ -52,7 +52,7 @@ EXPERIMENT = Experiment(
               Variant("pixel_gather", "PixelGather", "pixel_gather"),
               Variant("pixel_splat", "PixelSplat", "pixel_splat")),
     metric="relmse",
-    steps=300,
+    steps=900,
     judge=judge,
     paper_figures={"sbmc": {"rMSE 8 spp": 0.0382, "rMSE 4 spp": 0.0482},
                    "sbmc_gather": {"rMSE 8 spp": 0.0512, "rMSE 4 spp": 0.0573},

@@ -41,7 +41,7 @@ EXPERIMENT = Experiment(
     variants=(Variant("fused", "fused 3, 5, 7", "wskp"),
               *(Variant(f"k{k}", f"single k={k}", "wskp", (("kernel_sizes", (k,)),)) for k in SINGLE_SIZES)),
     metric="psnr",
-    steps=600,
+    steps=4000,
     judge=judge,
     paper_figures={"fused": {"PSNR #=3": 33.64}, "k3": {"PSNR": 32.29}, "k5": {"PSNR": 32.61}, "k7": {"PSNR": 32.80}},
     notes=("Our PSNR is on Reinhard-tonemapped radiance of whole held-out images; the paper's on its own "
