@@ -1,0 +1,125 @@
+"""Which model denoises an input: the user's (``--model NAME|WEIGHTS``) or the best shipped one.
+
+Without a model named, every shipped model (:func:`mcdenoise.models.weights.shipped`) whose inputs
+the image has is a candidate. Candidates with a test relMSE in their model card are ranked by it
+(lowest first; :func:`card_relmse` says which number is read) ahead of those without, which keep
+the fixed order of :data:`FALLBACK_ORDER`: per-sample models first (they see the most
+information), then the per-pixel models from the richest input to the leanest.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+
+from mcdenoise.infer.sources import InputError, Inputs
+from mcdenoise.models.registry import MODELS, Denoiser, _load_all
+
+__all__ = ["FALLBACK_ORDER", "card_relmse", "missing_channels", "choose_model"]
+
+#: Order among shipped models whose card gives no test relMSE (unknown names go last, by name).
+FALLBACK_ORDER: tuple[str, ...] = (
+    "sbmc", "layer_optimized", "layer", "layer_weighted", "pixel_splat", "sbmc_gather", "pixel_gather",
+    "kpcn", "kpcn_single", "dpcn", "wskp_mr", "wskp",
+)
+#: spp whose relMSE ranks models when the card gives one per spp (the issue's 8 spp), else the lowest.
+RANK_SPP = 8
+
+
+def _as_float(v: Any) -> float | None:
+    return float(v) if isinstance(v, (int, float)) and not isinstance(v, bool) else None
+
+
+def card_relmse(card: dict[str, Any]) -> float | None:
+    """The test relMSE of a model card, or None.
+
+    Reads ``card["test"]``: the first key containing ``relmse`` (any case). Its value is a number,
+    or a mapping spp -> number (keys like ``8``, ``"8"`` or ``"8spp"``), of which the entry for
+    :data:`RANK_SPP` spp is used, else the one with the fewest spp.
+    """
+    test = card.get("test") if isinstance(card, dict) else None
+    if not isinstance(test, dict):
+        return None
+    for key, value in test.items():
+        if "relmse" not in str(key).lower():
+            continue
+        if _as_float(value) is not None:
+            return _as_float(value)
+        if isinstance(value, dict):
+            by_spp: dict[int, float] = {}
+            for k, v in value.items():
+                digits = "".join(ch for ch in str(k) if ch.isdigit())
+                if digits and _as_float(v) is not None:
+                    by_spp[int(digits)] = _as_float(v)  # type: ignore[assignment]
+            if by_spp:
+                return by_spp.get(RANK_SPP, by_spp[min(by_spp)])
+    return None
+
+
+def missing_channels(required: list[str], kind: str, inputs: Inputs) -> list[str]:
+    """Channels of ``required`` (a model's ``required_channels()``) that ``inputs`` lacks.
+
+    A sample model on an input without per-sample buffers lacks ``"per-sample buffers"`` first.
+    """
+    need = [c for c in required if c != "scene_features"]
+    have = inputs.channels(kind)
+    out = [c for c in need if c not in have]
+    if kind == "samples" and inputs.samples is None:
+        return ["per-sample buffers (an image folder of `mcdenoise render`)"] + out
+    return out
+
+
+def _refuse(label: str, name: str, missing: list[str]) -> InputError:
+    return InputError(f"model {name!r} needs channels that {label} lacks: {', '.join(missing)}")
+
+
+def _fallback_rank(name: str) -> tuple[int, str]:
+    return (FALLBACK_ORDER.index(name) if name in FALLBACK_ORDER else len(FALLBACK_ORDER), name)
+
+
+def choose_model(inputs: Inputs, spec: str | None = None, *, device: torch.device | str = "cpu",
+                 preset: str | None = None) -> tuple[Denoiser, dict[str, Any]]:
+    """Load the model for ``inputs``: ``spec`` (name, weights file or run folder) or the best shipped one.
+
+    Returns ``(model in eval mode, info)``; ``info`` is :func:`mcdenoise.models.weights.load_denoiser`'s
+    plus ``channels``, the input channels the model reads, and ``why``, one line on the choice.
+    Raises :class:`InputError` (one line, naming the missing channels) when the model cannot run.
+    """
+    from mcdenoise.models.weights import load_denoiser, model_from_config, shipped
+
+    _load_all()
+    if spec is not None:
+        model, info = load_denoiser(spec, preset=preset, device=device)
+        missing = missing_channels(model.required_channels(), model.input_kind, inputs)
+        if missing:
+            raise _refuse(inputs.label, info["name"], missing)
+        info["why"] = "as asked"
+    else:
+        candidates = []
+        refused = []
+        for sw in shipped():
+            if sw.name not in MODELS or (preset is not None and sw.preset != preset):
+                continue
+            arch = model_from_config(sw.name, sw.preset, sw.card.get("model_config"))
+            missing = missing_channels(arch.required_channels(), arch.input_kind, inputs)
+            if missing:
+                refused.append((sw.name, missing))
+                continue
+            score = card_relmse(sw.card)
+            rank = (0, score, "") if score is not None else (1, 0.0, "")
+            candidates.append((rank, _fallback_rank(sw.name), sw, score))
+        if not candidates:
+            if not refused:
+                raise InputError("no shipped models are installed; pass --model NAME|WEIGHTS (a .safetensors file or a run folder)")
+            # The model that misses the fewest channels says best what the input lacks.
+            name, missing = min(refused, key=lambda r: (len(r[1]), _fallback_rank(r[0])))
+            raise InputError(f"no shipped model can denoise {inputs.label}: the closest, {name!r}, needs "
+                             f"{', '.join(missing)}")
+        candidates.sort(key=lambda c: (c[0][0], c[0][1], c[1]))
+        _, _, best, score = candidates[0]
+        model, info = load_denoiser(best.name, preset=best.preset, device=device)
+        info["why"] = (f"lowest test relMSE ({score:.4g}) among shipped models whose inputs are present"
+                       if score is not None else "first in the fixed order among shipped models whose inputs are present")
+    info["channels"] = [c for c in model.required_channels() if c != "scene_features"]
+    return model, info

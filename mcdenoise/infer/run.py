@@ -1,0 +1,108 @@
+"""Denoise an :class:`~mcdenoise.infer.sources.Inputs` with a model, in tiles sized to a memory budget."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+
+from mcdenoise.infer.memory import DEFAULT_MAX_MEMORY, MemoryCost, measure_cost
+from mcdenoise.infer.receptive import alignment, receptive_field
+from mcdenoise.infer.sources import Inputs
+from mcdenoise.infer.tiling import TilePlan, plan_tiles, run_tiled
+from mcdenoise.models.registry import Denoiser
+
+__all__ = ["default_device", "memory_cost", "tile_plan", "denoise_inputs", "RunInfo", "BUDGET_FRACTION", "describe_plan"]
+
+#: Share of ``max_memory`` given to one tile's model call; the rest holds the whole-image output,
+#: the reader's staging buffers (a window is read in its storage dtype, then converted) and Python.
+BUDGET_FRACTION = 0.75
+
+#: Images up to this many pixels run as one tile without measuring the model's memory cost (the
+#: measurement's own probe is as large).
+SMALL_IMAGE = 64 * 64
+
+_COSTS: dict[tuple[str, str, int, str], MemoryCost] = {}
+
+
+def default_device() -> torch.device:
+    """CUDA when available, else the CPU."""
+    return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+
+
+def memory_cost(model: Denoiser, spp: int, device: torch.device) -> MemoryCost:
+    """:func:`mcdenoise.infer.memory.measure_cost`, remembered per model configuration, spp and device."""
+    key = (type(model).__qualname__, repr(getattr(model, "config", None)), spp, device.type)
+    if key not in _COSTS:
+        _COSTS[key] = measure_cost(model, spp, device, align=alignment(model))
+    return _COSTS[key]
+
+
+def tile_plan(model: Denoiser, height: int, width: int, *, spp: int = 1, device: torch.device | str = "cpu",
+              tile: int | str | None = "auto", max_memory: int | None = None) -> TilePlan:
+    """The tile grid for ``model`` on an ``height x width`` image.
+
+    ``tile``: ``"auto"``/None sizes tiles from ``max_memory`` (bytes, default 4 GiB) and the
+    measured per-pixel cost; an int fixes the core side. The overlap is the measured receptive field.
+    """
+    device = torch.device(device)
+    if tile not in (None, "auto"):
+        return plan_tiles(height, width, receptive=receptive_field(model), align=alignment(model), core=int(tile))
+    if height * width <= SMALL_IMAGE:
+        return plan_tiles(height, width, receptive=0)  # one tile; nothing to measure
+    budget = (max_memory or DEFAULT_MAX_MEMORY) * BUDGET_FRACTION - 3 * height * width * 4  # minus the output
+    window = memory_cost(model, spp, device).max_pixels(budget)
+    if height * width <= window:
+        return plan_tiles(height, width, receptive=0)  # fits whole: the receptive field is not needed
+    return plan_tiles(height, width, receptive=receptive_field(model), align=alignment(model), max_window_pixels=window)
+
+
+@dataclass
+class RunInfo:
+    """How a denoise ran: the plan, the device, the input channels read."""
+
+    plan: TilePlan
+    device: torch.device
+    channels: list[str]
+    spp: int
+
+
+def denoise_inputs(inputs: Inputs, model: Denoiser, *, device: torch.device | str | None = None,
+                   tile: int | str | None = "auto", max_memory: int | None = None,
+                   progress: bool | None = None) -> tuple[np.ndarray, RunInfo]:
+    """Run ``model`` on ``inputs`` tile by tile -> ``(3, H, W)`` float32 linear radiance and a :class:`RunInfo`.
+
+    ``progress``: a tqdm bar over tiles on stderr (None: only when stderr is a terminal).
+    """
+    device = torch.device(device) if device is not None else default_device()
+    model = model.to(device).eval()
+    kind = model.input_kind
+    spp = inputs.samples.spp if (kind == "samples" and inputs.samples is not None) else 1
+    plan = tile_plan(model, inputs.height, inputs.width, spp=spp, device=device, tile=tile, max_memory=max_memory)
+    names = [c for c in model.required_channels() if c != "scene_features"]
+
+    def read(t: Any) -> dict[str, torch.Tensor]:
+        return inputs.batch(names, kind, t.window, t.core, device)
+
+    bar = None
+    if progress is not False:
+        from tqdm import tqdm
+
+        def bar(tiles: Any) -> Any:
+            return tqdm(tiles, total=len(plan), desc="denoise", unit="tile", disable=None if progress is None else False,
+                        leave=False)
+
+    out = run_tiled(model, read, plan, progress=bar)
+    inputs.warn_nonfinite()
+    return out, RunInfo(plan, device, names, spp)
+
+
+def describe_plan(plan: TilePlan) -> str:
+    """``"1 tile"`` or ``"24 tiles of 512 px (+32 px overlap)"``."""
+    n = len(plan)
+    if n == 1:
+        return "1 tile"
+    return f"{n} tiles of {plan.core} px (+{plan.overlap} px overlap)"
+
