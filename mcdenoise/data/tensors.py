@@ -11,9 +11,56 @@ from typing import Sequence
 import numpy as np
 import torch
 
+from mcdenoise.data.channels import base_name
+from mcdenoise.data.format import pixel_stats
 from mcdenoise.errors import FormatError
 
-__all__ = ["image_batch"]
+__all__ = ["image_batch", "input_arrays"]
+
+
+def input_arrays(
+    folder: "object",
+    channels: Sequence[str],
+    input_kind: str,
+    *,
+    spp: int | None = None,
+) -> dict[str, np.ndarray]:
+    """A model's inputs for one whole image from its first ``spp`` stored samples (no batch axis).
+
+    The one place that turns "k samples of this image" into model inputs, shared by validation
+    (:func:`mcdenoise.train.data.validation_batches`) and evaluation (:mod:`mcdenoise.eval`), so
+    both see exactly the same inputs.
+
+    Args:
+        folder: an :class:`mcdenoise.data.format.ImageFolder`.
+        channels: names to return (``scene_features`` is ignored; see ``meta.scene_feature_vector``).
+        input_kind: ``"samples"`` -> name -> ``(k, C, H, W)`` float32, samples ``0..k-1``;
+            ``"pixels"`` -> name -> ``(C, H, W)`` float32 means and ``*_variance`` (variance of the
+            mean, :func:`~mcdenoise.data.format.pixel_stats`) over samples ``0..k-1``. With all
+            stored samples (``spp`` None or the stored count) they come from ``noisy.exr``, which
+            holds the same numbers.
+        spp: ``k``, 1 <= k <= the stored spp; None = all stored samples.
+    """
+    names = [c for c in channels if c != "scene_features"]
+    total = folder.meta.spp
+    k = total if spp is None else int(spp)
+    if not 1 <= k <= total:
+        raise ValueError(f"{folder.path}: asked for {k} samples, the image stores {total}")
+    if input_kind not in ("samples", "pixels"):
+        raise ValueError(f"input_kind must be 'samples' or 'pixels', got {input_kind!r}")
+    if input_kind == "pixels" and k == total:
+        return folder.read_noisy(names)
+    if folder.samples is None:
+        raise FormatError(folder.path, f"{k} of {total} samples asked for, but the folder has no samples file")
+    idx = list(range(k))
+    if input_kind == "samples":
+        return folder.samples.read(names, samples=idx)
+    bases = list(dict.fromkeys(base_name(c) for c in names))
+    smp = folder.samples.read(bases, samples=idx)
+    stats: dict[str, np.ndarray] = {}
+    for b in bases:
+        stats[b], stats[b + "_variance"] = pixel_stats(smp[b])
+    return {c: stats[c] for c in names}
 
 
 def image_batch(

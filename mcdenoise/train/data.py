@@ -22,8 +22,8 @@ import numpy as np
 import torch
 
 from mcdenoise.data.dataset import Dataset
-from mcdenoise.data.format import ImageFolder, pixel_stats
-from mcdenoise.data.channels import base_name
+from mcdenoise.data.format import ImageFolder
+from mcdenoise.data.tensors import input_arrays
 from mcdenoise.data.sampler import SAMPLINGS, TARGETS, Crop, CropSampler
 from mcdenoise.train.augment import NUM_OPS, augment_arrays, camera_frame
 
@@ -253,17 +253,7 @@ def validation_batches(
         elif not im.has_reference:
             hi = max(1, m.spp // 2)
         idx = list(range(hi))
-        if model.input_kind == "samples":
-            inputs = im.samples.read(names, samples=idx)
-        elif hi == m.spp:
-            inputs = im.read_noisy(names)
-        else:
-            bases = list(dict.fromkeys(base_name(c) for c in names))
-            smp = im.samples.read(bases, samples=idx)
-            stats = {}
-            for b in bases:
-                stats[b], stats[b + "_variance"] = pixel_stats(smp[b])
-            inputs = {c: stats[c] for c in names}
+        inputs = input_arrays(im, names, model.input_kind, spp=hi)
         if im.has_reference:
             ref = im.read_reference(targets)
         else:

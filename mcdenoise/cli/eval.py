@@ -1,0 +1,103 @@
+"""Evaluate denoisers against the noisy input, OIDN 2.5.1 and NL-means; write an HTML report.
+
+    mcdenoise eval --models A B ... --data DIR [DIR ...] --out REPORT_DIR [--split test]
+                   [--spp 4 8 16] [--oidn high fast] [--no-oidn] [--no-classic] [--max-images N]
+                   [--device auto|cpu|cuda] [--threads N]
+                   [--results-md docs/RESULTS.md --section NAME]
+                   [--no-html] [--no-progress]
+
+A model is a registered name (its shipped weights), a run folder of `mcdenoise train`, or a
+.safetensors file. DIR is a dataset folder (its --split images), an image folder from
+`mcdenoise render`, or a folder of such image folders; only images with a reference count.
+REPORT_DIR gets results.json, results.csv and index.html (see docs/EVAL.md).
+"""
+
+from __future__ import annotations
+
+import argparse
+import shlex
+import sys
+from pathlib import Path
+
+
+def add_parser(p: argparse.ArgumentParser) -> None:
+    # No torch import here: every `mcdenoise` command builds this parser.
+    p.formatter_class = argparse.RawDescriptionHelpFormatter
+    p.epilog = __doc__.split("\n\n", 1)[1]
+    p.add_argument("--models", nargs="*", default=[], metavar="MODEL",
+                   help="registered names (shipped weights), run folders or .safetensors files")
+    p.add_argument("--data", nargs="+", required=True, metavar="DIR", help="dataset or image folders")
+    p.add_argument("--out", type=Path, required=True, help="report folder (an earlier report there is replaced)")
+    p.add_argument("--split", default="test", help="dataset split to evaluate (default test)")
+    p.add_argument("--spp", type=int, nargs="*", default=[4, 8, 16], metavar="K",
+                   help="input sample counts: the first K stored samples (default 4 8 16)")
+    p.add_argument("--oidn", nargs="+", default=["high", "fast"], metavar="QUALITY",
+                   help="OIDN qualities: high, balanced, fast (default high fast)")
+    p.add_argument("--no-oidn", action="store_true", help="leave OIDN out")
+    p.add_argument("--no-classic", action="store_true", help="leave the NL-means filter out")
+    p.add_argument("--max-images", type=int, help="at most N images per data folder")
+    p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto",
+                   help="device of the models and NL-means (default auto: CUDA when available)")
+    p.add_argument("--threads", type=int, help="torch CPU threads (default: torch's; 1 is faster on busy cores)")
+    p.add_argument("--results-md", type=Path, help="also write the tables into this Markdown file...")
+    p.add_argument("--section", help="...as its generated block eval:SECTION")
+    p.add_argument("--no-html", action="store_true", help="only results.json and results.csv")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def run(args: argparse.Namespace) -> int:
+    from mcdenoise.eval.runner import evaluate
+
+    argv = sys.argv[1:] if Path(sys.argv[0]).name == "mcdenoise" and sys.argv[1:2] == ["eval"] else None
+    command = "mcdenoise " + shlex.join(argv) if argv else _command_from(args)
+    doc = evaluate(
+        models=args.models,
+        data=args.data,
+        out=args.out,
+        split=args.split,
+        spp=args.spp,
+        oidn=[] if args.no_oidn else args.oidn,
+        classic=not args.no_classic,
+        max_images=args.max_images,
+        device=args.device,
+        threads=args.threads,
+        results_md=args.results_md,
+        section=args.section,
+        html=not args.no_html,
+        progress=not args.no_progress,
+        command=command,
+    )
+    n = len({r["image"] for r in doc["rows"]})
+    print(f"{args.out}: {n} images x spp {', '.join(map(str, doc['config']['spp']))}, "
+          f"{len(doc['methods'])} methods" + (f"; {args.results_md} block eval:{args.section}" if args.results_md else ""),
+          file=sys.stderr)
+    return 0
+
+
+def _command_from(args: argparse.Namespace) -> str:
+    """The equivalent command line when not started as ``mcdenoise`` (tests, ``python -m``)."""
+    parts = ["eval"]
+    if args.models:
+        parts += ["--models", *args.models]
+    parts += ["--data", *args.data, "--split", args.split, "--spp", *map(str, args.spp), "--out", str(args.out)]
+    if args.no_oidn:
+        parts.append("--no-oidn")
+    elif args.oidn != ["high", "fast"]:
+        parts += ["--oidn", *args.oidn]
+    if args.no_classic:
+        parts.append("--no-classic")
+    if args.max_images is not None:
+        parts += ["--max-images", str(args.max_images)]
+    if args.device != "auto":
+        parts += ["--device", args.device]
+    if args.threads is not None:
+        parts += ["--threads", str(args.threads)]
+    if args.results_md is not None:
+        parts += ["--results-md", str(args.results_md), "--section", str(args.section)]
+    return "mcdenoise " + shlex.join(parts)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    from mcdenoise.cli.main import main
+
+    sys.exit(main(["eval", *sys.argv[1:]]))

@@ -1,0 +1,123 @@
+"""The tables ``mcdenoise eval --results-md PATH --section NAME`` writes into a Markdown file.
+
+They go into the generated block ``eval:NAME`` (:func:`mcdenoise.eval.docblock.replace_block`),
+so the prose around them and other commands' blocks stay as they are. Per model and spp the block
+gives the relMSE improvement over the noisy input (``noisy relMSE / model relMSE``, both means over
+the same images) and the ratio to OIDN ``high`` (``model relMSE / OIDN relMSE``: below 1 beats
+OIDN), and whether the floor of issue 10 holds: at least 10x over noisy at 8 spp.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+from mcdenoise.eval.docblock import replace_block
+
+__all__ = ["FLOOR", "FLOOR_SPP", "render_block", "write_results_md"]
+
+#: The floor every shipped model must meet: relMSE improvement over noisy at FLOOR_SPP.
+FLOOR = 10.0
+FLOOR_SPP = 8
+_TABLE_METRICS = ("relmse", "smape", "psnr", "ssim", "flip")
+_NAMES = {"relmse": "relMSE", "smape": "SMAPE", "psnr": "PSNR", "ssim": "SSIM", "flip": "FLIP"}
+
+
+def _f(v: Any, spec: str = ".4g") -> str:
+    return "n/a" if v is None else format(v, spec)
+
+
+def _get(summary: list[dict[str, Any]], subset: str, method: str, spp: int) -> dict[str, Any] | None:
+    for s in summary:
+        if s["subset"] == subset and s["method"] == method and s["spp"] == spp:
+            return s
+    return None
+
+
+def _ratio(a: float | None, b: float | None) -> float | None:
+    return a / b if a is not None and b not in (None, 0.0) else None
+
+
+def _means(doc: dict[str, Any], subset: str) -> list[str]:
+    metrics = [m for m in _TABLE_METRICS if m in doc["config"]["metrics"]]
+    head = "| spp | method | " + " | ".join(_NAMES[m] for m in metrics) + " | ms/MP |"
+    lines = [head, "|" + "---|" * (3 + len(metrics))]
+    for k in doc["config"]["spp"]:
+        for m in doc["methods"]:
+            s = _get(doc["summary"], subset, m["name"], k)
+            if s is None:
+                continue
+            vals = " | ".join(_f(s.get(x)) for x in metrics)
+            lines.append(f"| {k} | {m['name']} | {vals} | {_f(s.get('ms_per_mpix'), '.3g')} |")
+    return lines
+
+
+def _model_table(doc: dict[str, Any], subset: str) -> list[str]:
+    models = [m["name"] for m in doc["methods"] if m["kind"] == "model"]
+    if not models:
+        return []
+    lines = ["| model | spp | relMSE | x better than noisy | ratio to OIDN high |", "|---|---|---|---|---|"]
+    for name in models:
+        for k in doc["config"]["spp"]:
+            s = _get(doc["summary"], subset, name, k)
+            if s is None:
+                continue
+            noisy = _get(doc["summary"], subset, "noisy", k)
+            oidn = _get(doc["summary"], subset, "oidn-high", k)
+            imp = _ratio(noisy["relmse"] if noisy else None, s.get("relmse"))
+            vs = _ratio(s.get("relmse"), oidn["relmse"] if oidn else None)
+            lines.append(f"| {name} | {k} | {_f(s.get('relmse'))} | {_f(imp, '.3g')} | {_f(vs, '.3g')} |")
+    return lines
+
+
+def _floors(doc: dict[str, Any]) -> list[str]:
+    out = []
+    for m in doc["methods"]:
+        if m["kind"] != "model":
+            continue
+        s = _get(doc["summary"], "all", m["name"], FLOOR_SPP)
+        noisy = _get(doc["summary"], "all", "noisy", FLOOR_SPP)
+        imp = _ratio(noisy["relmse"] if noisy else None, s.get("relmse") if s else None)
+        if imp is None:
+            verdict = f"not measured (no {FLOOR_SPP} spp rows)"
+        else:
+            verdict = f"{'met' if imp >= FLOOR else 'missed'} ({imp:.3g}x)"
+        out.append(f"- {m['name']}: floor (>= {FLOOR:g}x over noisy at {FLOOR_SPP} spp): {verdict}")
+    return out
+
+
+def render_block(doc: dict[str, Any]) -> str:
+    """The Markdown of one evaluation: provenance, mean tables, model ratios, floors, DoF subset."""
+    p = doc["provenance"]
+    cfg = doc["config"]
+    n_sub = max((s["images"] for s in doc["summary"] if s["subset"] == "dof_motion"), default=0)
+    lines = [
+        f"Command: `{doc['command']}`",
+        "",
+        f"Date {p['date']}; machine: {p['machine']}; device {p['device']}; mcdenoise {p['mcdenoise']}, "
+        f"torch {p['torch']}" + (f", OIDN {p['oidn']}" if "oidn" in p else "") + ".",
+        f"{len(doc['images'])} images (split `{cfg['split']}` of {', '.join(f'`{d}`' for d in cfg['data'])}), "
+        f"inputs: the first k stored samples, k = {', '.join(map(str, cfg['spp']))}. "
+        "Means over images; ms/MP = wall time of the denoise call per megapixel.",
+        "",
+        *_means(doc, "all"),
+    ]
+    models = _model_table(doc, "all")
+    if models:
+        lines += ["", "relMSE per model: improvement over the noisy input and ratio to OIDN `high` "
+                      "(below 1 beats OIDN).", "", *models, "", *_floors(doc)]
+    if n_sub:
+        lines += ["", f"Depth-of-field / motion-blur images only ({n_sub}):", "", *_means(doc, "dof_motion")]
+        sub_models = _model_table(doc, "dof_motion")
+        if sub_models:
+            lines += ["", *sub_models]
+    if doc["notes"]:
+        lines += ["", "Notes: " + "; ".join(doc["notes"])]
+    return "\n".join(lines)
+
+
+def write_results_md(path: str | os.PathLike, section: str, doc: dict[str, Any]) -> Path:
+    """Write :func:`render_block` into block ``eval:SECTION`` of ``path`` (appended under a
+    ``## Evaluation: SECTION`` heading the first time)."""
+    return replace_block(path, f"eval:{section}", render_block(doc), heading=f"## Evaluation: {section}")

@@ -1,0 +1,427 @@
+"""``mcdenoise eval``: every denoiser on the same images at several sample counts, into one report.
+
+For each image with a reference and each ``k`` of ``spp`` (the first ``k`` stored samples; a
+``k`` above the stored count is skipped with a note), the noisy input, OIDN 2.5.1 (``high`` and
+``fast`` by default, HDR, albedo + normal guides), feature-guided NL-means and each model run on
+the same inputs; every metric of :mod:`mcdenoise.eval.metrics` is computed per image, then
+averaged per (method, spp). Times: wall time of the denoise call only (inputs already read and on
+the device), after one untimed warm-up call per method, under ``torch.inference_mode``; the
+mean time per megapixel of a (method, spp) is total seconds over total megapixels.
+
+The report folder (written whole, then renamed into place) holds ``results.json``,
+``results.csv``, ``index.html`` with its PNGs (:mod:`mcdenoise.eval.html`); ``results_md``
+also fills block ``eval:SECTION`` of a Markdown file (:mod:`mcdenoise.eval.resultsmd`).
+"""
+
+from __future__ import annotations
+
+import csv
+import datetime
+import json
+import math
+import os
+import platform
+import re
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from mcdenoise.data.dataset import MANIFEST_FILE, SPLITS, Dataset
+from mcdenoise.data.format import META_FILE, ImageFolder
+from mcdenoise.errors import McDenoiseError
+from mcdenoise.eval.metrics import METRICS, compute_metrics
+from mcdenoise.eval.methods import ClassicMethod, Inputs, Method, ModelMethod, NoisyMethod, OIDNMethod
+from mcdenoise.io.atomic import atomic_dir, atomic_file
+
+__all__ = ["EvalError", "EvalImage", "evaluate", "collect_images", "image_effects", "RESULTS_FORMAT", "CSV_FIELDS"]
+
+RESULTS_FORMAT = "mcdenoise-eval"
+RESULTS_VERSION = 1
+#: Leading columns of results.csv; one column per metric follows.
+CSV_FIELDS = ("image", "spp", "method", "seconds", "ms_per_mpix")
+#: Subsets summarised separately: name -> the image effects that put an image in it.
+SUBSETS = {"all": None, "dof_motion": ("depth_of_field", "motion_blur")}
+
+
+class EvalError(McDenoiseError):
+    """The evaluation cannot run as asked: no images, no references, bad sample counts..."""
+
+
+@dataclass
+class EvalImage:
+    """One image of the evaluation. ``id`` is unique: ``<data folder name>/<path in it>``."""
+
+    id: str
+    folder: ImageFolder
+    data: str
+    effects: list[str] = field(default_factory=list)
+
+    def to_json(self) -> dict[str, Any]:
+        m = self.folder.meta
+        return {"id": self.id, "path": str(self.folder.path), "data": self.data, "scene": m.scene,
+                "width": m.width, "height": m.height, "spp": m.spp, "reference_spp": m.reference_spp,
+                "effects": self.effects}
+
+
+def image_effects(meta: Any) -> list[str]:
+    """``depth_of_field`` / ``motion_blur`` when the image has them.
+
+    Procedural images record both flags in ``extra["procedural"]``; other renders (the built-in
+    scenes) are judged by their camera's scene features: a lens aperture, an open shutter.
+    """
+    proc = meta.extra.get("procedural") if isinstance(meta.extra, dict) else None
+    f = meta.scene_features
+    if isinstance(proc, dict) and "depth_of_field" in proc:
+        dof, motion = bool(proc.get("depth_of_field")), bool(proc.get("motion_blur"))
+    else:
+        dof = float(f.get("aperture_radius", 0.0)) > 0.0
+        motion = float(f.get("shutter_close", 0.0)) > float(f.get("shutter_open", 0.0))
+    return [name for name, on in (("depth_of_field", dof), ("motion_blur", motion)) if on]
+
+
+def _folders_of(d: Path, split: str) -> list[tuple[str, ImageFolder]]:
+    """(relative id, folder) for a dataset (its ``split``), one image folder, or a folder of them."""
+    if (d / MANIFEST_FILE).is_file():
+        ds = Dataset(d)
+        paths = ds.paths(split)
+        if not paths:
+            counts = ", ".join(f"{s} {len(ds.paths(s))}" for s in SPLITS)
+            raise EvalError(f"{d}: the dataset has no images in the {split!r} split ({counts})")
+        return [(p.relative_to(d).as_posix(), ImageFolder(p)) for p in paths]
+    if (d / META_FILE).is_file():
+        return [(".", ImageFolder(d))]
+    subs = sorted(p for p in d.iterdir() if (p / META_FILE).is_file()) if d.is_dir() else []
+    if not subs:
+        what = "no such folder" if not d.exists() else "neither a dataset (manifest.json), an image folder (meta.json), nor a folder of image folders"
+        raise EvalError(f"{d}: {what}")
+    return [(p.name, ImageFolder(p)) for p in subs]
+
+
+def collect_images(data: Sequence[str | os.PathLike], split: str = "test",
+                   max_images: int | None = None) -> tuple[list[EvalImage], list[str]]:
+    """The images with a reference from each data folder (at most ``max_images`` per folder), and
+    notes on what was left out. Raises :class:`EvalError` when a folder gives none."""
+    if split not in SPLITS:
+        raise EvalError(f"unknown split {split!r}; choose one of {', '.join(SPLITS)}")
+    if max_images is not None and max_images < 1:
+        raise EvalError(f"--max-images must be at least 1, got {max_images}")
+    images: list[EvalImage] = []
+    notes: list[str] = []
+    seen: set[str] = set()
+    for d in data:
+        d = Path(d)
+        found = _folders_of(d, split)
+        with_ref = [(rel, f) for rel, f in found if f.has_reference]
+        for rel, f in found:
+            if not f.has_reference:
+                notes.append(f"{f.path}: no reference, left out")
+        if not with_ref:
+            raise EvalError(f"{d}: none of its {len(found)} image(s) has a reference (reference.exr)")
+        if max_images is not None and len(with_ref) > max_images:
+            notes.append(f"{d}: first {max_images} of {len(with_ref)} images (--max-images)")
+            with_ref = with_ref[:max_images]
+        base = d.resolve().name or "data"
+        for rel, f in with_ref:
+            iid = base if rel == "." else f"{base}/{rel}"
+            n = 2
+            while iid in seen:  # two data folders of the same name
+                iid, n = f"{base}#{n}/{rel}", n + 1
+            seen.add(iid)
+            images.append(EvalImage(iid, f, str(d), image_effects(f.meta)))
+    return images, notes
+
+
+def _check_spp(spp: Sequence[int]) -> list[int]:
+    ks = sorted({int(k) for k in spp})
+    if not ks:
+        raise EvalError("no sample counts given (--spp needs at least one, e.g. --spp 4 8 16)")
+    if ks[0] < 1:
+        raise EvalError(f"sample counts must be at least 1, got {ks[0]}")
+    return ks
+
+
+def _device(device: str | None) -> torch.device:
+    if device in (None, "auto"):
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if device not in ("cpu", "cuda"):
+        raise EvalError(f"device must be cpu, cuda or auto, got {device!r}")
+    if device == "cuda" and not torch.cuda.is_available():
+        raise EvalError("--device cuda: no CUDA device is available")
+    return torch.device(device)
+
+
+def build_methods(models: Sequence[str | os.PathLike], oidn: Sequence[str], classic: bool,
+                  device: torch.device) -> list[Method]:
+    """Noisy, OIDN per quality, NL-means, then each model (labels made unique)."""
+    from mcdenoise.models.weights import load_denoiser
+
+    methods: list[Method] = [NoisyMethod()]
+    if oidn:
+        from mcdenoise.eval.oidn import QUALITIES, _pyoidn
+
+        for q in oidn:
+            if q not in QUALITIES:
+                raise EvalError(f"OIDN quality {q!r}: expected one of {', '.join(QUALITIES)}")
+        _pyoidn()  # one-line OIDNError now rather than after the first image
+        methods += [OIDNMethod(q) for q in dict.fromkeys(oidn)]
+    if classic:
+        methods.append(ClassicMethod(device=device))
+    taken = {m.name for m in methods}
+    for spec in models:
+        net, info = load_denoiser(spec, device=device)
+        label = str(info.get("label") or info["name"])
+        base, n = label, 2
+        while label in taken:
+            label, n = f"{base}-{n}", n + 1
+        taken.add(label)
+        methods.append(ModelMethod(label, net, info, device))
+    return methods
+
+
+def _num(v: float | None) -> float | None:
+    """JSON has no NaN/Inf: non-finite values (a diverged model) become null."""
+    return v if v is not None and math.isfinite(v) else None
+
+
+def _metrics(y: np.ndarray, ref: np.ndarray, names: list[str]) -> dict[str, float | None]:
+    """Every metric of ``names`` in float64; DSSIM is ``1 - SSIM`` (:func:`metrics.dssim`), so SSIM is
+    computed once when both are asked for."""
+    both = "ssim" in names and "dssim" in names
+    vals = compute_metrics(y.astype(np.float64), ref.astype(np.float64), [n for n in names if not (both and n == "dssim")])
+    if both:
+        vals["dssim"] = 1.0 - vals["ssim"]
+    return {n: _num(vals[n]) for n in names}
+
+
+def _run_timed(method: Method, prepared: Any, device: torch.device) -> tuple[np.ndarray, float | None]:
+    if not method.timed:
+        return method.run(prepared), None
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+    t0 = time.perf_counter()
+    out = method.run(prepared)
+    return out, time.perf_counter() - t0
+
+
+def _cpu_name() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def provenance(device: torch.device, oidn: bool) -> dict[str, Any]:
+    """Versions and machine behind the numbers."""
+    from importlib import metadata
+
+    import mcdenoise
+
+    out: dict[str, Any] = {
+        "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+        "mcdenoise": mcdenoise.__version__,
+        "torch": torch.__version__,
+        "numpy": np.__version__,
+        "python": platform.python_version(),
+        "platform": platform.platform(),
+        "cpu": _cpu_name(),
+        "cpu_count": os.cpu_count(),
+        "torch_threads": torch.get_num_threads(),
+        "device": str(device),
+    }
+    if device.type == "cuda":
+        out["gpu"] = torch.cuda.get_device_name(device)
+    if oidn:
+        from mcdenoise.eval.oidn import version
+
+        out["oidn"] = version()
+        try:
+            out["pyoidn"] = metadata.version("pyoidn")
+        except metadata.PackageNotFoundError:
+            pass
+    out["machine"] = f"{out['cpu']} ({out['cpu_count']} logical cores)" + (f", {out['gpu']}" if "gpu" in out else "")
+    return out
+
+
+def summarize(rows: list[dict[str, Any]], images: list[EvalImage], methods: list[str], spps: list[int],
+              metric_names: list[str]) -> list[dict[str, Any]]:
+    """Means per (subset, method, spp): every metric over the subset's images, and ms per megapixel
+    (total time over total megapixels). Subsets without images are left out."""
+    effects = {im.id: set(im.effects) for im in images}
+    mpix = {im.id: im.folder.meta.width * im.folder.meta.height / 1e6 for im in images}
+    out = []
+    for subset, need in SUBSETS.items():
+        keep = [r for r in rows if need is None or effects[r["image"]] & set(need)]
+        for m in methods:
+            for k in spps:
+                sel = [r for r in keep if r["method"] == m and r["spp"] == k]
+                if not sel:
+                    continue
+                s: dict[str, Any] = {"subset": subset, "method": m, "spp": k, "images": len(sel)}
+                for name in metric_names:
+                    vals = [r[name] for r in sel]
+                    s[name] = None if any(v is None for v in vals) else _num(float(np.mean(vals)))
+                secs = [r["seconds"] for r in sel]
+                total_mp = sum(mpix[r["image"]] for r in sel)
+                s["ms_per_mpix"] = None if any(t is None for t in secs) else 1e3 * sum(secs) / total_mp
+                out.append(s)
+    return out
+
+
+def write_csv(path: Path, rows: list[dict[str, Any]], metric_names: list[str]) -> None:
+    """One row per image x spp x method; floats as ``repr`` (they read back exactly), null as empty."""
+    with atomic_file(path) as tmp, open(tmp, "w", newline="") as fh:
+        w = csv.writer(fh)
+        cols = [*CSV_FIELDS, *metric_names]
+        w.writerow(cols)
+        for r in rows:
+            w.writerow(["" if r[c] is None else repr(r[c]) if isinstance(r[c], float) else r[c] for c in cols])
+
+
+def evaluate(
+    *,
+    models: Sequence[str | os.PathLike] = (),
+    data: Sequence[str | os.PathLike] | str | os.PathLike,
+    out: str | os.PathLike,
+    split: str = "test",
+    spp: Sequence[int] = (4, 8, 16),
+    oidn: Sequence[str] = ("high", "fast"),
+    classic: bool = True,
+    max_images: int | None = None,
+    device: str | None = "auto",
+    threads: int | None = None,
+    metrics: Sequence[str] | None = None,
+    results_md: str | os.PathLike | None = None,
+    section: str | None = None,
+    html: bool = True,
+    progress: bool = True,
+    command: str | None = None,
+) -> dict[str, Any]:
+    """Run the evaluation and write the report folder ``out``; returns what results.json holds.
+
+    Args:
+        models: model specs for :func:`mcdenoise.models.weights.load_denoiser` (registered name
+            with shipped weights, run folder, or .safetensors file).
+        data: dataset folders (images of ``split``), image folders, or folders of image folders.
+        out: report folder; replaced whole when it holds an earlier report, refused when it holds
+            anything else.
+        spp: input sample counts k (the first k stored samples).
+        oidn: OIDN qualities to run (empty: no OIDN).
+        classic: run feature-guided NL-means.
+        max_images: at most this many images per data folder.
+        device: ``cpu``, ``cuda`` or ``auto`` (CUDA when available) for the models and NL-means.
+        threads: torch CPU threads during the evaluation (default: torch's); 1 is much faster on
+            a machine whose cores are busy with other work, and the count is in the provenance.
+        metrics: metric names (default: every metric of :data:`mcdenoise.eval.metrics.METRICS`).
+        results_md, section: also write the tables into block ``eval:SECTION`` of this Markdown file.
+        html: write index.html and its images.
+        progress: a tqdm bar over (image, spp) on stderr.
+        command: the command line recorded in the report (default: a Python call).
+    """
+    ks = _check_spp(spp)
+    if (results_md is None) != (section is None):
+        raise EvalError("--results-md and --section go together")
+    if section is not None and not re.fullmatch(r"[A-Za-z0-9_.-]+", section):
+        raise EvalError(f"--section {section!r}: use only letters, digits and _.- (it names block eval:SECTION)")
+    metric_names = list(metrics) if metrics is not None else list(METRICS)
+    unknown = [m for m in metric_names if m not in METRICS]
+    if unknown:
+        raise EvalError(f"unknown metric(s) {unknown}; known: {', '.join(METRICS)}")
+    out = Path(out)
+    if out.exists() and (not out.is_dir() or (any(out.iterdir()) and not (out / "results.json").is_file())):
+        raise EvalError(f"{out}: exists and is not an earlier report (no results.json); choose another --out")
+    data_list = [data] if isinstance(data, (str, os.PathLike)) else list(data)
+    if not data_list:
+        raise EvalError("no data folder given (--data)")
+    images, notes = collect_images(data_list, split, max_images)
+    dev = _device(device)
+    if threads is not None and threads < 1:
+        raise EvalError(f"--threads must be at least 1, got {threads}")
+    old_threads = torch.get_num_threads()
+    if threads is not None:
+        torch.set_num_threads(threads)
+    try:
+        doc = _evaluate(models, data_list, out, split, ks, list(oidn), classic, max_images, dev, metric_names,
+                        images, notes, html, progress, command)
+    finally:
+        torch.set_num_threads(old_threads)
+    if results_md is not None and section is not None:
+        from mcdenoise.eval.resultsmd import write_results_md
+
+        write_results_md(results_md, section, doc)
+    return doc
+
+
+def _evaluate(models: Sequence[str | os.PathLike], data_list: list[Any], out: Path, split: str, ks: list[int],
+              oidn: list[str], classic: bool, max_images: int | None, dev: torch.device, metric_names: list[str],
+              images: list[EvalImage], notes: list[str], html: bool, progress: bool, command: str | None
+              ) -> dict[str, Any]:
+    """The evaluation loop and the report folder (arguments checked by :func:`evaluate`)."""
+    from tqdm import tqdm
+
+    methods = build_methods(models, list(oidn), classic, dev)
+    prov = provenance(dev, bool(oidn))
+    if command is None:
+        command = f"mcdenoise.eval.evaluate(models={list(map(str, models))}, data={list(map(str, data_list))}, " \
+                  f"split={split!r}, spp={ks})"
+
+    from mcdenoise.eval import html as report
+
+    rows: list[dict[str, Any]] = []
+    warmed: set[str] = set()
+    pairs = [(im, k) for im in images for k in ks]
+    with atomic_dir(out, overwrite=True) as tmp:
+        crops = report.CropWriter(tmp) if html else None
+        bar = tqdm(pairs, desc="eval", unit="img", disable=not progress, dynamic_ncols=True)
+        for im, k in bar:
+            bar.set_postfix_str(f"{im.id} {k} spp")
+            if k > im.folder.meta.spp:
+                notes.append(f"{im.id}: {k} spp skipped (stores {im.folder.meta.spp})")
+                continue
+            ref = im.folder.read_reference(["radiance"])["radiance"]  # type: ignore[index]
+            x = Inputs(im.folder, k)
+            mp = im.folder.meta.width * im.folder.meta.height / 1e6
+            outputs: dict[str, np.ndarray] = {}
+            for m in methods:
+                prepared = m.prepare(x)
+                if m.timed and m.name not in warmed:
+                    m.run(prepared)  # warm-up: first-call allocations, kernel compilation, OIDN's filter setup
+                    warmed.add(m.name)
+                y, secs = _run_timed(m, prepared, dev)
+                y = np.asarray(y, dtype=np.float32)
+                if y.shape != ref.shape:
+                    raise EvalError(f"{m.name} returned shape {y.shape} for {im.id}, expected {ref.shape}")
+                rows.append({"image": im.id, "spp": k, "method": m.name, "seconds": secs,
+                             "ms_per_mpix": None if secs is None else 1e3 * secs / mp, **_metrics(y, ref, metric_names)})
+                outputs[m.name] = y
+            if crops is not None:
+                crops.add(im.id, k, outputs, ref)
+        bar.close()
+        names = [m.name for m in methods]
+        doc: dict[str, Any] = {
+            "format": RESULTS_FORMAT,
+            "version": RESULTS_VERSION,
+            "command": command,
+            "provenance": prov,
+            "config": {"models": [str(s) for s in models], "data": [str(d) for d in data_list], "split": split,
+                       "spp": ks, "oidn": list(oidn), "classic": classic, "max_images": max_images,
+                       "device": str(dev), "threads": torch.get_num_threads(), "metrics": metric_names},
+            "methods": [m.info for m in methods],
+            "images": [im.to_json() for im in images],
+            "notes": notes,
+            "rows": rows,
+            "summary": summarize(rows, images, names, ks, metric_names),
+        }
+        with atomic_file(tmp / "results.json") as f:
+            f.write_text(json.dumps(doc, indent=1, allow_nan=False) + "\n")
+        write_csv(tmp / "results.csv", rows, metric_names)
+        if crops is not None:
+            report.write_report(tmp, doc, crops)
+    return doc
