@@ -1,0 +1,143 @@
+"""Denoise an EXR (Blender, Mitsuba, pbrt or our naming), separate colour/albedo/normal files, or an image folder.
+
+    mcdenoise denoise INPUT -o OUTPUT.exr [--model NAME|WEIGHTS] [--albedo F] [--normal F] [--depth F]
+                      [--device cpu|cuda] [--tile auto|N] [--max-memory 4G] [--preview OUT.png] [--force]
+
+INPUT is a multi-layer EXR in any naming of ``mcdenoise/io/names.py``, a colour EXR with its
+features in separate files (``--albedo``, ``--normal``, ``--depth``, as OIDN's tools take them),
+or an image folder of ``mcdenoise render`` (whose per-sample buffers feed the sample models).
+Without ``--model`` the best shipped model whose inputs are present runs; the command says which
+and which channels it read. The output holds the denoised radiance as top-level ``R, G, B``
+(float32), written atomically; the input is never overwritten, nor an existing output without
+``--force``. See docs/DENOISE.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import warnings
+from pathlib import Path
+
+from mcdenoise.errors import McDenoiseError
+
+
+def add_parser(p: argparse.ArgumentParser) -> None:
+    p.add_argument("input", type=Path, help="EXR file or image folder of `mcdenoise render`")
+    p.add_argument("-o", "--output", type=Path, required=True, help="denoised EXR to write")
+    p.add_argument("--model", default=None,
+                   help="registered name (its shipped weights), .safetensors file or run folder; "
+                        "default: the best shipped model for the channels present")
+    p.add_argument("--albedo", type=Path, default=None, help="albedo image (EXR) when INPUT is only the colour")
+    p.add_argument("--normal", type=Path, default=None, help="normal image (EXR) when INPUT is only the colour")
+    p.add_argument("--depth", type=Path, default=None, help="depth image (single-channel EXR)")
+    p.add_argument("--device", default=None, help="cpu or cuda (default: cuda when available)")
+    p.add_argument("--tile", default="auto", help="tile side in pixels, or auto (sized from --max-memory)")
+    p.add_argument("--max-memory", default="4G", help="memory budget of one tile, e.g. 4G or 512M (default 4G)")
+    p.add_argument("--preview", type=Path, default=None, help="also write an 8-bit sRGB PNG preview here")
+    p.add_argument("--force", action="store_true", help="replace an existing OUTPUT")
+
+
+def _same(a: Path, b: Path) -> bool:
+    try:
+        return a.exists() and b.exists() and os.path.samefile(a, b)
+    except OSError:
+        return False
+
+
+def _check_outputs(args: argparse.Namespace, inputs: list[Path]) -> None:
+    """Refuse, before any work, outputs that would overwrite an input or an existing file."""
+    out: Path = args.output
+    if out.suffix.lower() != ".exr":
+        raise McDenoiseError(f"{out}: the output must be an .exr file")
+    targets = [("output", out)] + ([("preview", args.preview)] if args.preview is not None else [])
+    for what, path in targets:
+        for src in inputs:
+            if path.resolve() == src.resolve() or _same(path, src):
+                raise McDenoiseError(f"{path}: the {what} would overwrite the input {src}; choose another name")
+        if path.is_dir():
+            raise McDenoiseError(f"{path}: is a folder, the {what} must be a file")
+        if path.exists() and not args.force:
+            raise McDenoiseError(f"{path}: already exists; pass --force to replace it")
+    if args.preview is not None and args.preview.resolve() == out.resolve():
+        raise McDenoiseError(f"{out}: output and preview are the same file")
+
+
+def _tile(text: str) -> int | str:
+    if text == "auto":
+        return "auto"
+    try:
+        n = int(text)
+    except ValueError:
+        n = 0
+    if n < 1:
+        raise McDenoiseError(f"--tile: expected auto or a positive number of pixels, got {text!r}")
+    return n
+
+
+def run(args: argparse.Namespace) -> int:
+    from mcdenoise.infer.memory import parse_memory
+
+    tile = _tile(args.tile)
+    try:
+        budget = parse_memory(args.max_memory)
+    except ValueError as e:
+        raise McDenoiseError(f"--max-memory: {e}") from None
+    src: Path = args.input
+    if not src.exists():
+        raise McDenoiseError(f"{src}: no such file or folder")
+    extras = [p for p in (args.albedo, args.normal, args.depth) if p is not None]
+    if src.is_dir() and extras:
+        raise McDenoiseError(f"{src}: --albedo/--normal/--depth go with a colour EXR, not an image folder")
+    for p in extras:
+        if not p.is_file():
+            raise McDenoiseError(f"{p}: no such file")
+    _check_outputs(args, [src, *extras])
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        code = _denoise(args, src, tile, budget)
+    for w in caught:
+        first = str(w.message).strip().splitlines()
+        print(f"mcdenoise denoise: warning: {first[0] if first else w.category.__name__}", file=sys.stderr)
+    return code
+
+
+def _denoise(args: argparse.Namespace, src: Path, tile: int | str, budget: int) -> int:
+    import torch
+
+    from mcdenoise.infer.choose import choose_model
+    from mcdenoise.infer.run import default_device, denoise_inputs, describe_plan
+    from mcdenoise.infer.sources import from_exr, from_folder
+    from mcdenoise.io.exr import tonemap, write_exr_raw, write_png
+
+    if args.device is not None and args.device.startswith("cuda") and not torch.cuda.is_available():
+        raise McDenoiseError("--device cuda: no CUDA device is available (use --device cpu)")
+    try:
+        device = torch.device(args.device) if args.device else default_device()
+    except RuntimeError as e:
+        raise McDenoiseError(f"--device: {e}") from None
+    if src.is_dir():
+        inputs = from_folder(src)
+    else:
+        inputs = from_exr(src, albedo=args.albedo, normal=args.normal, depth=args.depth)
+    model, info = choose_model(inputs, args.model, device=device)
+    print(f"model: {info['name']} ({info['preset']}, {info['source']} weights {info['weights']}; {info['why']})")
+    kind = "per-sample" if model.input_kind == "samples" else "per-pixel"
+    print(f"channels: {', '.join(info['channels'])} ({kind})")
+    out, run = denoise_inputs(inputs, model, device=device, tile=tile, max_memory=budget)
+    print(f"ran {describe_plan(run.plan)} on {run.device}")
+    attrs = {"mcdenoise_model": str(info["name"]), "mcdenoise_weights": str(info["weights"]),
+             "mcdenoise_input": str(src)}
+    try:
+        write_exr_raw(args.output, {"R": out[0], "G": out[1], "B": out[2]}, attributes=attrs)
+        print(f"wrote {args.output}")
+        if args.preview is not None:
+            import numpy as np
+
+            rgb8 = np.round(tonemap(out) * 255.0).astype(np.uint8).transpose(1, 2, 0)
+            write_png(args.preview, rgb8)
+            print(f"wrote {args.preview}")
+    except OSError as e:
+        raise McDenoiseError(f"{e.filename or args.output}: cannot write ({e.strerror or e})") from None
+    return 0
