@@ -136,7 +136,8 @@ def run_dir(out: Path, exp: Experiment, steps: int, seed: int, data: Path) -> Pa
 def _train_config(exp: Experiment, v: Variant, data: Path, steps: int, seed: int) -> Any:
     from mcdenoise.train.config import TrainConfig
 
-    val_every = max(1, steps // exp.validations)
+    # Rounded up: `validations` evenly spaced points, the last at the final step (not one just before it).
+    val_every = max(1, math.ceil(steps / exp.validations))
     # One torch thread: on the shared 2-core machine, OpenMP threads spinning against other jobs
     # made a step 5-20x slower than one thread (measured: KPCN 1.8 s vs 0.17 s at load ~7).
     return TrainConfig(model=v.model, preset="small", model_overrides=dict(v.overrides), data=str(data), steps=steps,
@@ -211,7 +212,7 @@ def _run_experiment(exp: Experiment, data: str | Path | None, steps: int | None,
             raise RuntimeError(f"{run}: no finite validation values of {exp.metric}; see its metrics.csv")
         summary = json.loads((run / "result.json").read_text())
         variants[v.key] = {"label": v.label, "model": v.model, "overrides": dict(v.overrides),
-                           "parameters": _parameters(v), "wall_s": summary["wall_s"], "run": str(run),
+                           "parameters": _parameters(v), "wall_s": summary["wall_s"], "device": summary["device"], "run": str(run),
                            "curve": curve, "final": {m: curve[-1][m] for m in METRIC_NAMES}}
         log(f"[{exp.name}] {v.label}: final val {METRIC_NAMES[exp.metric]} {curve[-1][exp.metric]:.5g}")
     result: dict[str, Any] = {

@@ -58,14 +58,21 @@ def _fmt(metric: str, v: float) -> str:
     return f"{v:.2f}" if metric == "psnr" else f"{v:.4g}"
 
 
+def _device(result: dict[str, Any]) -> str:
+    devices = sorted({v["device"] for v in result["variants"].values()})
+    if devices == ["cpu"]:
+        return "the CPU (the project's machine has 2 cores, shared with other jobs while this ran)"
+    return ", ".join(f"`{d}`" for d in devices)
+
+
 def _data_line(result: dict[str, Any]) -> str:
     d = result["data"]
     src = "the procedural cache the command renders (`CACHE_DATASET` in mcdenoise/repro/common.py)" \
         if result["default_data"] else f"`{d['path']}`"
     target = (f"{d['reference_spp']}-spp references" if d["val_references"]
               else "no references: the validation target is the mean of held-out samples of each image")
-    return (f"{src}: {d['train_images']} training images, {d['val_images']} validation images of "
-            f"{d['val_scenes']} held-out scenes, {d['width']}x{d['height']} at {d['spp']} spp, {target}")
+    return (f"{src}: {d['train_images']} training images, {d['val_images']} validation image(s) of "
+            f"{d['val_scenes']} held-out scene(s), {d['width']}x{d['height']} at {d['spp']} spp, {target}")
 
 
 def markdown_block(result: dict[str, Any], notes: str = "") -> str:
@@ -77,8 +84,7 @@ def markdown_block(result: dict[str, Any], notes: str = "") -> str:
     lines = [f"### {result['title']}", "", f"**Paper:** {result['claim']}", "",
              f"**Command:** `{command_line(result)}` ({result['steps']} steps per variant, batch {result['batch']} "
              f"crops of {result['crop']}x{result['crop']}, seed {result['seed']}; every variant on the same data, "
-             f"steps, batch and crops; training time {result['wall_s_training'] / 60:.1f} min in all on the "
-             f"2-core machine, shared with other jobs).", "",
+             f"steps, batch and crops; training took {result['wall_s_training'] / 60:.1f} min in all on {_device(result)}).", "",
              f"**Data:** {_data_line(result)}.", "",
              "**Final validation metrics** (whole held-out images, after the last step):", "",
              "| variant | model | parameters | relMSE | SMAPE | L1 | PSNR (dB) | paper |",
