@@ -1,0 +1,249 @@
+"""`mcdenoise eval` (mcdenoise/eval/runner.py, html.py, resultsmd.py, cli/eval.py) on tiny data.
+
+Two randomly initialised small models (a pixel model and a sample model) saved as safetensors
+stand in for trained weights; the numbers are meaningless, the report's consistency is not.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from mcdenoise.cli.main import main
+from mcdenoise.data.dataset import Dataset, read_manifest, write_manifest
+from mcdenoise.data.format import pixel_stats
+from mcdenoise.data.tensors import input_arrays
+from mcdenoise.eval import EvalError, evaluate
+from mcdenoise.eval.metrics import METRICS
+from mcdenoise.eval.oidn import oidn_available
+from mcdenoise.models.registry import build_model
+from train_tiny_data import make_tiny_dataset
+
+SPP = (2, 4, 8, 16)  # the tiny images store 8: 16 must be skipped with a note
+MODELS = ("wskp", "layer")  # one pixel model, one sample model, both cheap
+
+
+def _save_model(path: Path, name: str) -> Path:
+    from safetensors.torch import save_file
+
+    torch.manual_seed(0)
+    m = build_model(name, "small")
+    save_file({k: v.contiguous() for k, v in m.state_dict().items()}, str(path), metadata={"model": name, "preset": "small"})
+    return path
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Three 24x24 test images (8 spp, references); the second is flagged depth of field."""
+    root = make_tiny_dataset(tmp_path_factory.mktemp("evaldata"), train=1, val=3, spp=8, size=24)
+    entries = [{**e, "split": "test" if e["split"] == "val" else e["split"]} for e in read_manifest(root)]
+    write_manifest(root, entries)
+    meta = root / entries[2]["path"] / "meta.json"
+    doc = json.loads(meta.read_text())
+    doc["extra"]["procedural"] = {"depth_of_field": True, "motion_blur": False}
+    meta.write_text(json.dumps(doc))
+    return root
+
+
+@pytest.fixture(scope="module")
+def models(tmp_path_factory: pytest.TempPathFactory) -> list[Path]:
+    d = tmp_path_factory.mktemp("evalmodels")
+    return [_save_model(d / f"{n}_rand.safetensors", n) for n in MODELS]
+
+
+@pytest.fixture(scope="module")
+def report(data: Path, models: list[Path], tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict, Path]:
+    out = tmp_path_factory.mktemp("evalout") / "report"
+    md = out.parent / "RESULTS.md"
+    md.write_text("# Results\n\nHand-written prose.\n")
+    doc = evaluate(models=[str(m) for m in models], data=[data], out=out, spp=SPP, threads=1, progress=False,
+                   results_md=md, section="tiny")
+    return out, doc, md
+
+
+def test_input_arrays_first_k_samples(data: Path) -> None:
+    """Catches eval and validation disagreeing on what "k samples" means: pixel inputs are the
+    mean/variance of samples 0..k-1, all samples read noisy.exr, sample inputs are samples 0..k-1."""
+    im = Dataset(data).images("test")[0]
+    smp = im.samples.read(["radiance"])["radiance"]
+    a = input_arrays(im, ["radiance", "radiance_variance"], "pixels", spp=3)
+    mean, var = pixel_stats(smp[:3])
+    np.testing.assert_array_equal(a["radiance"], mean)
+    np.testing.assert_array_equal(a["radiance_variance"], var)
+    full = input_arrays(im, ["radiance"], "pixels")
+    np.testing.assert_allclose(full["radiance"], pixel_stats(smp)[0], rtol=1e-6, atol=1e-7)
+    np.testing.assert_array_equal(input_arrays(im, ["radiance"], "samples", spp=2)["radiance"], smp[:2])
+    with pytest.raises(ValueError, match="stores 8"):
+        input_arrays(im, ["radiance"], "pixels", spp=9)
+
+
+def test_results_json_rows_and_summary(report: tuple[Path, dict, Path]) -> None:
+    """Catches a method or spp missing from the rows, a mean that is not the mean of its rows,
+    and a model label replaced by its registered name."""
+    out, doc, _ = report
+    on_disk = json.loads((out / "results.json").read_text())
+    assert on_disk == doc
+    names = [m["name"] for m in doc["methods"]]
+    expect = ["noisy", *(["oidn-high", "oidn-fast"] if oidn_available() else []), "nlmeans", "wskp_rand", "layer_rand"]
+    assert names == expect
+    assert [m["model"] for m in doc["methods"] if m["kind"] == "model"] == list(MODELS)
+    assert all(Path(m["weights"]).is_file() for m in doc["methods"] if m["kind"] == "model")
+    images = [im["id"] for im in doc["images"]]
+    assert len(images) == 3
+    ks = (2, 4, 8)
+    assert len(doc["rows"]) == len(images) * len(ks) * len(names)
+    assert {(r["image"], r["spp"], r["method"]) for r in doc["rows"]} == {(i, k, n) for i in images for k in ks for n in names}
+    assert sum("16 spp skipped" in n for n in doc["notes"]) == 3
+    for r in doc["rows"]:
+        assert set(METRICS) <= set(r)
+        assert (r["seconds"] is None) == (r["method"] == "noisy")
+    dof = [im["id"] for im in doc["images"] if im["effects"]]
+    assert dof == [images[1]]
+    for s in doc["summary"]:
+        sel = [r for r in doc["rows"] if r["method"] == s["method"] and r["spp"] == s["spp"]
+               and (s["subset"] == "all" or r["image"] in dof)]
+        assert s["images"] == len(sel) == (3 if s["subset"] == "all" else 1)
+        assert s["relmse"] == pytest.approx(np.mean([r["relmse"] for r in sel]), rel=1e-12)
+    p = doc["provenance"]
+    assert p["torch"] == torch.__version__ and p["mcdenoise"] and p["machine"]
+    assert ("oidn" in p) == oidn_available()
+
+
+def test_noisy_relmse_falls_with_spp(report: tuple[Path, dict, Path]) -> None:
+    """Catches inputs that ignore k (e.g. always all stored samples, or always the first one)."""
+    _, doc, _ = report
+    noisy = {s["spp"]: s["relmse"] for s in doc["summary"] if s["method"] == "noisy" and s["subset"] == "all"}
+    assert noisy[2] > noisy[4] > noisy[8]
+
+
+def test_denoisers_beat_noisy(report: tuple[Path, dict, Path]) -> None:
+    """Catches OIDN or NL-means fed the wrong buffers (e.g. albedo as colour, clamped LDR)."""
+    _, doc, _ = report
+    mean = {(s["method"], s["spp"]): s["relmse"] for s in doc["summary"] if s["subset"] == "all"}
+    for k in (2, 4, 8):
+        # Two samples give NL-means a poor variance estimate (0.6x of noisy at 2 spp, 0.45x at 4).
+        assert mean[("nlmeans", k)] < (0.8 if k == 2 else 0.5) * mean[("noisy", k)]
+        if oidn_available():
+            assert mean[("oidn-high", k)] < 0.5 * mean[("noisy", k)]
+
+
+def test_csv_numbers_equal_json(report: tuple[Path, dict, Path]) -> None:
+    """Catches the CSV rounding numbers or reordering columns relative to results.json."""
+    out, doc, _ = report
+    with open(out / "results.csv", newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    assert len(rows) == len(doc["rows"])
+    for c, j in zip(rows, doc["rows"]):
+        assert (c["image"], int(c["spp"]), c["method"]) == (j["image"], j["spp"], j["method"])
+        for key, v in j.items():
+            if key in ("image", "spp", "method"):
+                continue
+            assert (c[key] == "") if v is None else float(c[key]) == v, (key, c[key], v)
+
+
+def test_html_references_existing_images(report: tuple[Path, dict, Path]) -> None:
+    """Catches a page pointing at PNGs that were not written (or written elsewhere), and a page
+    that fetches anything from the network or runs scripts."""
+    out, doc, _ = report
+    page = (out / "index.html").read_text()
+    srcs = re.findall(r"<img[^>]*\ssrc='([^']+)'", page)
+    n_methods = len(doc["methods"])
+    # per image and spp: an image + error map per method, plus the reference; the plot and legend.
+    assert len(srcs) == 3 * 3 * (2 * n_methods + 1) + 2
+    for s in srcs:
+        assert not re.match(r"[a-z]+:", s), s
+        f = out / s
+        assert f.is_file() and f.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", s
+    assert "<script" not in page and "http" not in page
+    for m in doc["methods"]:
+        assert f">{m['name']}<" in page or f">{m['name']}<br>" in page
+
+
+def test_results_md_block(report: tuple[Path, dict, Path]) -> None:
+    """Catches the block overwriting the prose around it, or missing the ratios, floors and the
+    depth-of-field / motion-blur table."""
+    _, doc, md = report
+    text = md.read_text()
+    assert text.startswith("# Results\n\nHand-written prose.\n")
+    assert "<!-- BEGIN generated:eval:tiny -->" in text and "<!-- END generated:eval:tiny -->" in text
+    assert doc["command"] in text
+    for name in ("wskp_rand", "layer_rand"):
+        assert re.search(rf"- {name}: floor \(>= 10x over noisy at 8 spp\): (met|missed) \(", text)
+        assert re.search(rf"\| {name} \| 4 \| [0-9.e+-]+ \| [0-9.e+-]+ \| ", text)
+    assert "Depth-of-field / motion-blur images only (1)" in text
+
+
+def test_cli_writes_report_and_replaces_it(data: Path, models: list[Path], tmp_path: Path,
+                                           capsys: pytest.CaptureFixture[str]) -> None:
+    """Catches the CLI wiring (flags to evaluate) and a second run refusing its own earlier report."""
+    out = tmp_path / "rep"
+    argv = ["eval", "--models", str(models[0]), "--data", str(data), "--spp", "4", "--out", str(out),
+            "--no-oidn", "--no-html", "--no-progress", "--threads", "1", "--max-images", "2"]
+    assert main(argv) == 0
+    assert main(argv) == 0
+    doc = json.loads((out / "results.json").read_text())
+    assert [m["name"] for m in doc["methods"]] == ["noisy", "nlmeans", "wskp_rand"]
+    assert len(doc["rows"]) == 2 * 3 and not (out / "index.html").exists()
+    assert doc["command"].startswith("mcdenoise eval --models ") and "--no-oidn" in doc["command"]
+    assert "2 images" in capsys.readouterr().err
+
+
+def _one_line_error(argv: list[str], capsys: pytest.CaptureFixture[str], pattern: str) -> None:
+    assert main(argv) == 1
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "Traceback" not in err, err
+    assert re.search(pattern, err), err
+
+
+def test_cli_errors_are_one_line(data: Path, models: list[Path], tmp_path: Path,
+                                 capsys: pytest.CaptureFixture[str]) -> None:
+    """Catches tracebacks (or silent empty reports) for the mistakes users make."""
+    base = ["eval", "--data", str(data), "--out", str(tmp_path / "r"), "--no-progress", "--no-oidn"]
+    _one_line_error([*base, "--models", "no_such_model"], capsys, r"^mcdenoise eval: error: no_such_model: neither")
+    _one_line_error([*base, "--split", "val"], capsys, r"no images in the 'val' split \(train 1, val 0, test 3\)")
+    _one_line_error([*base, "--split", "valid"], capsys, r"unknown split 'valid'")
+    _one_line_error([*base, "--spp"], capsys, r"no sample counts given")
+    _one_line_error([*base, "--spp", "0", "4"], capsys, r"sample counts must be at least 1")
+    _one_line_error([*base, "--results-md", str(tmp_path / "R.md")], capsys, r"go together")
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "keep.txt").write_text("x")
+    _one_line_error([*base[:3], "--out", str(other), "--no-progress"], capsys, r"not an earlier report")
+    assert (other / "keep.txt").is_file()
+    _one_line_error(["eval", "--data", str(tmp_path / "nothing"), "--out", str(tmp_path / "r")], capsys,
+                    r"nothing: no such folder")
+
+
+def test_data_without_references_is_refused(data: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Catches images without a reference being scored against nothing (or against themselves)."""
+    import shutil
+
+    img = tmp_path / "noref"
+    shutil.copytree(data / read_manifest(data)[1]["path"], img)
+    meta = json.loads((img / "meta.json").read_text())
+    del meta["files"]["reference"]
+    (img / "meta.json").write_text(json.dumps(meta))
+    (img / "reference.exr").unlink()
+    _one_line_error(["eval", "--data", str(img), "--out", str(tmp_path / "r"), "--no-progress"], capsys,
+                    r"none of its 1 image\(s\) has a reference")
+    with pytest.raises(EvalError, match="has a reference"):
+        evaluate(data=img, out=tmp_path / "r2", progress=False)
+
+
+def test_image_folder_and_folder_of_images(data: Path, tmp_path: Path) -> None:
+    """Catches `mcdenoise render` outputs (one image folder, or a folder of them) not being accepted."""
+    import shutil
+
+    scenes = tmp_path / "scenes"
+    for e in read_manifest(data)[1:3]:
+        shutil.copytree(data / e["path"], scenes / Path(e["path"]).name)
+    doc = evaluate(data=[scenes / "002", scenes], out=tmp_path / "r", spp=[8], oidn=[], classic=False,
+                   html=False, progress=False)
+    assert [im["id"] for im in doc["images"]] == ["002", "scenes/001", "scenes/002"]
+    assert [im["effects"] for im in doc["images"]] == [["depth_of_field"], [], ["depth_of_field"]]
