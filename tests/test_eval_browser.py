@@ -59,6 +59,7 @@ def page(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
     from mcdenoise.models.registry import build_model
 
+    _browser()  # skip before building anything
     root = tmp_path_factory.mktemp("browser")
     data = make_tiny_dataset(root / "data", train=0, val=2, spp=8, size=24)
     model = build_model("wskp", "small")

@@ -385,6 +385,9 @@ def _evaluate(models: Sequence[str | os.PathLike], data_list: list[Any], out: Pa
             if k > im.folder.meta.spp:
                 notes.append(f"{im.id}: {k} spp skipped (stores {im.folder.meta.spp})")
                 continue
+            if k < im.folder.meta.spp and im.folder.samples is None:
+                notes.append(f"{im.id}: {k} spp skipped (no per-sample file; only all {im.folder.meta.spp} spp)")
+                continue
             ref = im.folder.read_reference(["radiance"])["radiance"]  # type: ignore[index]
             x = Inputs(im.folder, k)
             mp = im.folder.meta.width * im.folder.meta.height / 1e6
