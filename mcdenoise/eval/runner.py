@@ -16,11 +16,9 @@ also fills block ``eval:SECTION`` of a Markdown file (:mod:`mcdenoise.eval.resul
 from __future__ import annotations
 
 import csv
-import datetime
 import json
 import math
 import os
-import platform
 import re
 import time
 from collections.abc import Sequence
@@ -36,6 +34,7 @@ from mcdenoise.data.format import META_FILE, ImageFolder
 from mcdenoise.errors import McDenoiseError
 from mcdenoise.eval.metrics import METRICS, compute_metrics
 from mcdenoise.eval.methods import ClassicMethod, Inputs, Method, ModelMethod, NoisyMethod, OIDNMethod
+from mcdenoise.eval.provenance import provenance
 from mcdenoise.io.atomic import atomic_dir, atomic_file
 
 __all__ = ["EvalError", "EvalImage", "evaluate", "collect_images", "image_effects", "RESULTS_FORMAT", "CSV_FIELDS"]
@@ -206,48 +205,6 @@ def _run_timed(method: Method, prepared: Any, device: torch.device) -> tuple[np.
     t0 = time.perf_counter()
     out = method.run(prepared)
     return out, time.perf_counter() - t0
-
-
-def _cpu_name() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
-
-
-def provenance(device: torch.device, oidn: bool) -> dict[str, Any]:
-    """Versions and machine behind the numbers."""
-    from importlib import metadata
-
-    import mcdenoise
-
-    out: dict[str, Any] = {
-        "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-        "mcdenoise": mcdenoise.__version__,
-        "torch": torch.__version__,
-        "numpy": np.__version__,
-        "python": platform.python_version(),
-        "platform": platform.platform(),
-        "cpu": _cpu_name(),
-        "cpu_count": os.cpu_count(),
-        "torch_threads": torch.get_num_threads(),
-        "device": str(device),
-    }
-    if device.type == "cuda":
-        out["gpu"] = torch.cuda.get_device_name(device)
-    if oidn:
-        from mcdenoise.eval.oidn import version
-
-        out["oidn"] = version()
-        try:
-            out["pyoidn"] = metadata.version("pyoidn")
-        except metadata.PackageNotFoundError:
-            pass
-    out["machine"] = f"{out['cpu']} ({out['cpu_count']} logical cores)" + (f", {out['gpu']}" if "gpu" in out else "")
-    return out
 
 
 def summarize(rows: list[dict[str, Any]], images: list[EvalImage], methods: list[str], spps: list[int],
