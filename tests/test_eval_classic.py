@@ -68,8 +68,9 @@ def test_batch_matches_single_images_and_module() -> None:
     torch.testing.assert_close(both[1], one)
 
 
-def test_zero_variance_drops_colour_term() -> None:
-    """One sample gives an all-zero variance: the colour term would then keep every pixel as it is."""
+def test_zero_variance_falls_back_to_squared_colour() -> None:
+    """One sample gives an all-zero variance: taken literally, the colour term would keep every
+    pixel as it is; the fallback (``V = u^2``) must be used for it as for no variance at all."""
     s = _scene(1)
     zero = np.zeros_like(s["var"])
     out0 = feature_nlmeans(_t(s["mean"]), variance=_t(zero), albedo=_t(s["albedo"]))

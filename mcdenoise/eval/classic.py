@@ -15,8 +15,11 @@ first-hit albedo and normal, and a Gaussian spatial falloff. Pixel ``p`` becomes
 where ``u`` is the noisy radiance, ``V`` its variance of the mean, ``a``/``n`` albedo and normal,
 and ``box_f`` averages the per-pixel distance over a ``(2f+1)^2`` patch (NL-means' patch
 comparison). The variance terms cancel the expected noise in the squared difference, so flat
-noisy regions are averaged and real edges in the radiance are kept. Without a variance (one
-sample) the colour term is dropped and the features alone guide the filter.
+noisy regions are averaged and real edges in the radiance are kept. Without a variance estimate
+(one sample: none given, or all zero) ``V = u^2`` per channel is used, i.e. a single sample's
+relative standard deviation is taken as 1; dropping the colour term instead let bright emitters
+bleed into surfaces of the same albedo (relMSE 8.4 against the noisy input's 0.48 on the
+64x64 ``cornell-dof`` scene at 1 spp; 0.38 with ``V = u^2``).
 
 Default parameters (:class:`NLMeansParams`): window radius ``r = 7`` (15 x 15), patch radius
 ``f = 1`` (3 x 3), ``k = 0.45`` and ``eps = 1e-4`` in the colour distance (k as in Rousselle et
@@ -98,7 +101,7 @@ def _feature_nlmeans_impl(
             ys, xs = slice(r + dy, r + dy + h), slice(r + dx, r + dx + w)
             cq = cp[..., ys, xs]
             logw = torch.full_like(wsum, -(dy * dy + dx * dx) / (2.0 * p.sigma_spatial ** 2))
-            if variance is not None and vp is not None:
+            if vp is not None:
                 vq = vp[..., ys, xs]
                 d = ((color - cq) ** 2 - (variance + torch.minimum(variance, vq))) / (p.eps + p.k ** 2 * (variance + vq))
                 d = d.mean(dim=1, keepdim=True)
@@ -130,7 +133,7 @@ def feature_nlmeans(
     Args:
         color: (C, H, W) or (B, C, H, W) noisy radiance (mean of the samples).
         variance: same shape as ``color``: variance of the mean per channel; None (or all zero,
-            e.g. one sample) drops the colour term.
+            e.g. one sample) uses ``color ** 2`` (see the module docstring).
         albedo: (3, H, W) / (B, 3, H, W) first-hit albedo (mean over the samples), optional.
         normal: (3, H, W) / (B, 3, H, W) first-hit normal (mean over the samples), optional.
         params: :class:`NLMeansParams` (defaults when None).
@@ -152,8 +155,8 @@ def feature_nlmeans(
     _check("variance", variance, int(color.shape[1]), hw)
     _check("albedo", albedo, 3, hw)
     _check("normal", normal, 3, hw)
-    if variance is not None and not bool((variance > 0).any()):
-        variance = None
+    if variance is None or not bool((variance > 0).any()):
+        variance = color.square()
     dt = color.dtype if color.is_floating_point() else torch.float32
 
     def conv(t: torch.Tensor | None) -> torch.Tensor | None:

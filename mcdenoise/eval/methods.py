@@ -136,7 +136,8 @@ class ClassicMethod(Method):
 
     def prepare(self, x: Inputs) -> dict[str, torch.Tensor | None]:
         g = {k: torch.from_numpy(np.ascontiguousarray(v)).to(self.device) for k, v in x.guides.items()}
-        # One sample gives no variance estimate (pixel_stats returns zeros): no colour term then.
+        # One sample gives no variance estimate (pixel_stats returns zeros); the filter then
+        # falls back to its own (see mcdenoise/eval/classic.py).
         return {"color": g["radiance"], "variance": g.get("radiance_variance") if x.k > 1 else None,
                 "albedo": g.get("albedo"), "normal": g.get("normal")}
 
