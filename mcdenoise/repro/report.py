@@ -10,7 +10,7 @@ from typing import Any
 from mcdenoise.io.atomic import atomic_file
 from mcdenoise.repro.common import METRIC_NAMES
 
-__all__ = ["plot_curves", "markdown_block", "command_line"]
+__all__ = ["plot_curves", "markdown_block", "command_line", "spread"]
 
 
 def plot_curves(result: dict[str, Any], out_png: Path) -> Path:
@@ -54,6 +54,13 @@ def command_line(result: dict[str, Any]) -> str:
     return " ".join(parts)
 
 
+def spread(curve: list[dict[str, float]], metric: str, last: int = 3) -> float:
+    """max - min of ``metric`` over the last ``last`` validation points: how much a run still
+    wobbles, a floor under which a difference between variants says little."""
+    vals = [p[metric] for p in curve[-last:]]
+    return max(vals) - min(vals)
+
+
 def _fmt(metric: str, v: float) -> str:
     return f"{v:.2f}" if metric == "psnr" else f"{v:.4g}"
 
@@ -87,15 +94,15 @@ def markdown_block(result: dict[str, Any], notes: str = "") -> str:
              f"steps, batch and crops; training took {result['wall_s_training'] / 60:.1f} min in all on {_device(result)}).", "",
              f"**Data:** {_data_line(result)}.", "",
              "**Final validation metrics** (whole held-out images, after the last step):", "",
-             "| variant | model | parameters | relMSE | SMAPE | L1 | PSNR (dB) | paper |",
-             "|---|---|---:|---:|---:|---:|---:|---|"]
+             f"| variant | model | parameters | relMSE | SMAPE | L1 | PSNR (dB) | {mn} spread, last 3 validations | paper |",
+             "|---|---|---:|---:|---:|---:|---:|---:|---|"]
     for key, v in variants.items():
         f = v["final"]
         paper = ", ".join(f"{METRIC_NAMES.get(k, k)} {x:g}" for k, x in result["paper"].get(key, {}).items()) or "-"
         over = ", ".join(f"{k}={x}" for k, x in v["overrides"].items())
         model = f"`{v['model']}` small" + (f" ({over})" if over else "")
         lines.append(f"| {v['label']} | {model} | {v['parameters']:,} | {f['relmse']:.4g} | {f['smape']:.4g} | "
-                     f"{f['l1']:.4g} | {f['psnr']:.2f} | {paper} |")
+                     f"{f['l1']:.4g} | {f['psnr']:.2f} | {_fmt(m, spread(v['curve'], m))} | {paper} |")
     lines += ["", f"**Validation {mn} against steps:**", "",
               "| variant | " + " | ".join(str(s) for s in steps_axis) + " |",
               "|---|" + "---:|" * len(steps_axis)]
@@ -104,8 +111,9 @@ def markdown_block(result: dict[str, Any], notes: str = "") -> str:
     lines += ["", f"**Verdict: {result['verdict']}.** {result['explanation']}", "",
               f"**Caveats of scale:** one seed, {result['steps']} steps of batch {result['batch']} (the papers train "
               f"for days on thousands of 128-256 px images), the `small` presets (tens of thousands of parameters, "
-              f"not millions), {result['data']['train_images']} training images; differences of a few percent are "
-              f"within what another seed or a longer run could reverse. "
+              f"not millions), {result['data']['train_images']} training images, references with their own noise (the "
+              f"same floor under every variant); a difference smaller than the spread column, or of a few percent, "
+              f"is within what another seed or a longer run could reverse. "
               f"`--steps N` trains longer (runs resume; a new N starts new runs).{(' ' + notes) if notes else ''}",
               "", f"Curves: `{result['plot']}`; every figure: `{result['json']}`."]
     return "\n".join(lines)

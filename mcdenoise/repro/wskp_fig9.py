@@ -24,8 +24,8 @@ def judge(result: dict[str, Any]) -> tuple[str, str]:
     best = max(singles, key=singles.__getitem__)
     beaten = sum(f["fused"] > x for x in singles.values())
     text = (f"Validation PSNR: fused {f['fused']:.2f} dB; " + ", ".join(f"k={k[1:]} {x:.2f} dB" for k, x in singles.items())
-            + f". Fusion beats {beaten} of {len(singles)} single sizes; the best single size (k={best[1:]}) is "
-            f"{f['fused'] - singles[best]:+.2f} dB from fusion (paper: +0.84 dB over its best, k=7).")
+            + f". Fusion beats {beaten} of {len(singles)} single sizes and is {f['fused'] - singles[best]:+.2f} dB "
+            f"from the best of them (k={best[1:]}); paper: +0.84 dB over its best single size (k=7).")
     if beaten == len(singles):
         return "agrees", text
     return ("partly" if beaten else "disagrees"), text
