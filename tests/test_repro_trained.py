@@ -100,8 +100,10 @@ def test_layer_and_wskp_variants_differ_only_in_their_overrides() -> None:
 
 
 def _result(metric: str, finals: dict[str, float], steps: int = 100) -> dict:
+    # relMSE moves with the metric (PSNR's inverse), so a secondary check agrees with the primary.
     return {"metric": metric, "steps": steps,
-            "variants": {k: {"label": k, "curve": [{"step": steps, metric: x}]} for k, x in finals.items()}}
+            "variants": {k: {"label": k, "curve": [{"step": steps, metric: x, "relmse": 1 / x if metric == "psnr" else x}]}
+                         for k, x in finals.items()}}
 
 
 def test_verdicts_read_the_metric_in_the_right_direction() -> None:
@@ -110,6 +112,9 @@ def test_verdicts_read_the_metric_in_the_right_direction() -> None:
 
     assert wskp_fig9.judge(_result("psnr", {"fused": 30.0, "k3": 29.0, "k5": 29.5, "k7": 29.9}))[0] == "agrees"
     assert wskp_fig9.judge(_result("psnr", {"fused": 28.0, "k3": 29.0, "k5": 29.5, "k7": 29.9}))[0] == "disagrees"
+    split = _result("psnr", {"fused": 30.0, "k3": 29.0, "k5": 29.5, "k7": 29.9})
+    split["variants"]["k3"]["curve"][0]["relmse"] = 0.0  # best PSNR, but not the best relMSE
+    assert wskp_fig9.judge(split)[0] == "partly"
     paper = {"sbmc": 0.038, "sbmc_gather": 0.051, "pixel_splat": 0.062, "pixel_gather": 0.088}
     assert sbmc_table2.judge(_result("relmse", paper))[0] == "agrees"
     assert sbmc_table2.judge(_result("relmse", {k: 1 / x for k, x in paper.items()}))[0] == "disagrees"

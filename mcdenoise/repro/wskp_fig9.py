@@ -26,9 +26,13 @@ def judge(result: dict[str, Any]) -> tuple[str, str]:
     text = (f"Validation PSNR: fused {f['fused']:.2f} dB; " + ", ".join(f"k={k[1:]} {x:.2f} dB" for k, x in singles.items())
             + f". Fusion beats {beaten} of {len(singles)} single sizes and is {f['fused'] - singles[best]:+.2f} dB "
             f"from the best of them (k={best[1:]}); paper: +0.84 dB over its best single size (k=7).")
-    if beaten == len(singles):
+    # "in numerical error metrics": fusion should also have the lowest relMSE.
+    rel = {k: v["curve"][-1]["relmse"] for k, v in result["variants"].items()}
+    rel_beaten = sum(rel["fused"] < x for k, x in rel.items() if k != "fused")
+    text += f" On relMSE fusion beats {rel_beaten} of {len(singles)}."
+    if beaten == rel_beaten == len(singles):
         return "agrees", text
-    return ("partly" if beaten else "disagrees"), text
+    return ("partly" if beaten or rel_beaten else "disagrees"), text
 
 
 EXPERIMENT = Experiment(
