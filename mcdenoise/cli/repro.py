@@ -82,7 +82,8 @@ def _run_trained(args: argparse.Namespace) -> int:
     exp = load_experiment(args.experiment)
     quiet = args.quiet or args.json
     log = (lambda s: None) if quiet else (lambda s: print(s, file=sys.stderr, flush=True))
-    res = run_experiment(exp, data=args.data, steps=args.steps, seed=args.seed, out=args.out, log=log)
+    res = run_experiment(exp, data=args.data, steps=args.steps, seed=args.seed, out=args.out, log=log,
+                         progress=not quiet and sys.stderr.isatty())
     if args.write_docs:
         from mcdenoise.eval.docblock import replace_block
         from mcdenoise.repro.report import markdown_block

@@ -133,7 +133,7 @@ def run_dir(out: Path, exp: Experiment, steps: int, seed: int, data: Path) -> Pa
     return Path(out) / exp.name / f"{steps}steps_seed{seed}_data{manifest_hash(data)[:8]}"
 
 
-def _train_config(exp: Experiment, v: Variant, data: Path, steps: int, seed: int) -> Any:
+def _train_config(exp: Experiment, v: Variant, data: Path, steps: int, seed: int, progress: bool = False) -> Any:
     from mcdenoise.train.config import TrainConfig
 
     # Rounded up: `validations` evenly spaced points, the last at the final step (not one just before it).
@@ -142,7 +142,7 @@ def _train_config(exp: Experiment, v: Variant, data: Path, steps: int, seed: int
     # made a step 5-20x slower than one thread (measured: KPCN 1.8 s vs 0.17 s at load ~7).
     return TrainConfig(model=v.model, preset="small", model_overrides=dict(v.overrides), data=str(data), steps=steps,
                        batch=exp.batch, crop=exp.crop, seed=seed, val_every=val_every, val_images=None,
-                       checkpoint_every=val_every, keep_every=0, workers=0, threads=1, progress=False,
+                       checkpoint_every=val_every, keep_every=0, workers=0, threads=1, progress=progress,
                        **dict(exp.train_overrides))
 
 
@@ -176,23 +176,24 @@ def final_values(result: dict[str, Any], metric: str | None = None) -> dict[str,
 
 
 def run_experiment(exp: Experiment, *, data: str | Path | None = None, steps: int | None = None, seed: int = 0,
-                   out: str | Path = "runs/repro", log: Callable[[str], None] = print) -> dict[str, Any]:
+                   out: str | Path = "runs/repro", log: Callable[[str], None] = print,
+                   progress: bool = False) -> dict[str, Any]:
     """Train every variant of ``exp`` (resuming or skipping finished runs); write and return the result.
 
     Returns the dict written to ``result.json`` (see :func:`run_dir`); ``result["json"]`` and
-    ``result["plot"]`` name the files.
+    ``result["plot"]`` name the files. ``progress`` shows the engine's progress bar per run.
     """
     import torch
 
     threads = torch.get_num_threads()  # the runs use 1 (see _train_config); give the caller its own back
     try:
-        return _run_experiment(exp, data, steps, seed, Path(out), log)
+        return _run_experiment(exp, data, steps, seed, Path(out), log, progress)
     finally:
         torch.set_num_threads(threads)
 
 
 def _run_experiment(exp: Experiment, data: str | Path | None, steps: int | None, seed: int, out: Path,
-                    log: Callable[[str], None]) -> dict[str, Any]:
+                    log: Callable[[str], None], progress: bool) -> dict[str, Any]:
     from mcdenoise.train.loop import train
 
     data_dir = Path(data) if data is not None else procedural_cache(out / "data", log)
@@ -206,7 +207,7 @@ def _run_experiment(exp: Experiment, data: str | Path | None, steps: int | None,
         finished = (run / "result.json").is_file()
         log(f"[{exp.name}] {i}/{len(exp.variants)} {v.label}: " + ("finished earlier, skipped" if finished else f"training {steps} steps"))
         if not finished:
-            train(_train_config(exp, v, data_dir, steps, seed), run, resume=True)
+            train(_train_config(exp, v, data_dir, steps, seed, progress), run, resume=True)
         curve = _curve(run)
         if not curve or not all(math.isfinite(p[exp.metric]) for p in curve):
             raise RuntimeError(f"{run}: no finite validation values of {exp.metric}; see its metrics.csv")
