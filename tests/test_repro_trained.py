@@ -156,3 +156,21 @@ def test_every_variant_names_a_registered_model_and_known_fields() -> None:
             assert isinstance(v, Variant) and v.model in MODELS
             fields = {f.name for f in dataclasses.fields(MODELS[v.model].config("small"))}
             assert set(dict(v.overrides)) <= fields
+
+
+@pytest.mark.slow
+def test_without_data_renders_the_cache_once_and_reuses_it(tmp_path: Path, monkeypatch) -> None:
+    """Catches the fresh-clone path broken (the command must render its own held-out data with
+    references when no --data is given) and a rerun that renders the cache again."""
+    from mcdenoise.repro import common, wskp_fig9
+
+    monkeypatch.setattr(common, "CACHE_DATASET", dict(count=2, seed=10, spp=4, ref_spp=16, width=16, height=16, views=1,
+                                                      objects=(3, 5), fractions=(0.5, 0.5, 0.0)))
+    exp = _tiny(wskp_fig9.EXPERIMENT)
+    res = run_experiment(exp, steps=1, out=tmp_path, log=lambda s: None)
+    assert res["default_data"] and res["data"]["val_references"] and res["data"]["val_images"] == 1
+    manifest = tmp_path / "data" / "manifest.json"
+    before = manifest.stat().st_mtime_ns
+    lines: list[str] = []
+    run_experiment(dataclasses.replace(exp, name="wskp-again"), steps=1, out=tmp_path, log=lines.append)
+    assert manifest.stat().st_mtime_ns == before and not any("rendering" in s for s in lines)
