@@ -61,7 +61,7 @@ def test_shipped_weights_by_name_match_the_run(run: Path, tmp_path: Path, monkey
     """Bug caught: shipped weights that load into a fresh model (wrong file, non-strict load) or a
     card whose configuration is not applied; build_model(weights='shipped') must equal the run."""
     monkeypatch.setattr(W, "SHIPPED_DIR", tmp_path)
-    w, c = ship(run, out_dir=tmp_path)
+    w, c = ship(run, out_dir=tmp_path, docs=tmp_path / "TRAINING.md")
     trained, _ = W.load_denoiser(run)
     by_name = build_model("wskp", weights="shipped")
     by_resolver, info = W.load_denoiser("wskp")
@@ -75,6 +75,8 @@ def test_shipped_weights_by_name_match_the_run(run: Path, tmp_path: Path, monkey
     import hashlib
 
     assert card["weights_sha256"] == hashlib.sha256(w.read_bytes()).hexdigest()
+    doc = (tmp_path / "TRAINING.md").read_text()
+    assert card["training"]["command"] in doc and "generated:shipped:wskp-small" in doc
     with pytest.raises(W.WeightsError, match="exist"):
         ship(run, out_dir=tmp_path)
 

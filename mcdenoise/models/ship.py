@@ -27,7 +27,7 @@ from mcdenoise.errors import McDenoiseError
 from mcdenoise.io.atomic import atomic_file
 from mcdenoise.models.weights import SHIPPED_DIR, WeightsError, load_denoiser
 
-__all__ = ["dataset_command", "train_command", "model_card", "ship"]
+__all__ = ["dataset_command", "train_command", "model_card", "card_markdown", "ship"]
 
 
 def dataset_command(data_dir: str | Path) -> str:
@@ -135,9 +135,37 @@ def model_card(run_dir: Path, model: Any, info: dict[str, Any], results: dict[st
     return card
 
 
+def card_markdown(card: dict[str, Any]) -> str:
+    """The card as the Markdown block that docs/TRAINING.md shows for one shipped model."""
+    t = card["training"]
+    wall = f"{t['wall_s'] / 60:.0f} min" if t.get("wall_s") else "?"
+    lines = [f"**{card['name']}** (`{card['preset']}` preset, {card['parameters']:,} parameters, inputs: "
+             f"{', '.join(card['inputs'])}): {t['steps']} steps, {wall} wall on {t.get('device')} "
+             f"({t.get('threads') or 'default'} thread(s), {t.get('machine')}; the machine was shared, so wall time "
+             "overstates the compute).", "", "```"]
+    if card["dataset"].get("command"):
+        lines.append(card["dataset"]["command"])
+    lines += [t["command"], f"python -m mcdenoise.models.ship runs/{card['name']} --eval REPORT/results.json --force", "```"]
+    test = card.get("test") or {}
+    rows = [(spp, r) for spp, r in sorted((test.get("spp") or {}).items(), key=lambda kv: int(kv[0]))]
+    if rows:
+        lines += ["", "| spp | noisy relMSE | this model | OIDN high | OIDN fast |", "|---|---|---|---|---|"]
+        for spp, r in rows:
+            def f(k: str) -> str:
+                v = (r.get(k) or {}).get("relmse")
+                return f"{v:.4f}" if isinstance(v, (int, float)) else "-"
+            lines.append(f"| {spp} | {f('noisy')} | {f('model')} | {f('oidn_high')} | {f('oidn_fast')} |")
+        lines.append(f"\n(held-out test split: {test.get('data')}, {test.get('images')} images, OIDN {test.get('oidn_version')})")
+    return "\n".join(lines)
+
+
 def ship(run_dir: str | Path, *, results_json: str | Path | None = None, out_dir: Path = SHIPPED_DIR,
-         force: bool = False) -> tuple[Path, Path]:
-    """Copy ``run_dir``'s final weights into ``out_dir`` with a model card. Returns (weights, card)."""
+         force: bool = False, docs: str | Path | None = None) -> tuple[Path, Path]:
+    """Copy ``run_dir``'s final weights into ``out_dir`` with a model card. Returns (weights, card).
+
+    With ``docs`` (e.g. docs/TRAINING.md), the card's commands and test figures also go into the
+    generated block ``shipped:<name>-<preset>`` of that file.
+    """
     from safetensors.torch import save_file
 
     from mcdenoise.train.checkpoint import state_dict_for_safetensors
@@ -165,6 +193,10 @@ def ship(run_dir: str | Path, *, results_json: str | Path | None = None, out_dir
     card["weights_sha256"] = hashlib.sha256(w_path.read_bytes()).hexdigest()
     with atomic_file(c_path) as tmp:
         tmp.write_text(json.dumps(card, indent=1) + "\n")
+    if docs is not None:
+        from mcdenoise.eval.docblock import replace_block
+
+        replace_block(docs, f"shipped:{stem}", card_markdown(card), heading=f"### {stem}")
     return w_path, c_path
 
 
@@ -173,9 +205,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("run", type=Path, help="finished run folder of `mcdenoise train`")
     p.add_argument("--eval", type=Path, help="results.json of `mcdenoise eval` that includes this run")
     p.add_argument("--force", action="store_true", help="replace shipped weights of the same name and preset")
+    p.add_argument("--docs", type=Path, default=Path("docs/TRAINING.md"),
+                   help="Markdown file whose block shipped:<name>-<preset> gets the card (default docs/TRAINING.md)")
     a = p.parse_args(argv)
     try:
-        w, c = ship(a.run, results_json=a.eval, force=a.force)
+        w, c = ship(a.run, results_json=a.eval, force=a.force, docs=a.docs)
     except McDenoiseError as e:
         print(f"ship: error: {e}", file=sys.stderr)
         return 1
