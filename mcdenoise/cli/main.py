@@ -21,6 +21,7 @@ SUBCOMMANDS: dict[str, str] = {
     "train": "train a denoiser",
     "eval": "evaluate denoisers and the OIDN baseline, write a report",
     "denoise": "denoise an image folder or EXR",
+    "export": "export a denoiser to ONNX or TorchScript",
     "models": "list the registered denoisers",
     "bench": "measure speed",
     "repro": "reproduce paper experiments",

@@ -53,6 +53,13 @@ class PeakTracker(TorchDispatchMode):
     alive throughout (the inputs).
     """
 
+    @classmethod
+    def _should_skip_dynamo(cls) -> bool:
+        # PyTorch wraps a mode's __torch_dispatch__ in "dynamo disabled", which imports
+        # torch._dynamo on the first operator (tens of seconds on a loaded 2-core machine). This
+        # mode never runs under torch.compile, so the wrapper buys nothing.
+        return False
+
     def __init__(self, extra: int = 0) -> None:
         super().__init__()
         self._live: dict[int, tuple[StorageWeakRef, int]] = {}

@@ -1,0 +1,182 @@
+"""`mcdenoise denoise` on real file layouts, and its one-line refusals (issue 11, item 1).
+
+Weights are random (saved as .safetensors with the metadata shipped weights carry): these tests
+check plumbing, naming, tiling and error paths, not image quality.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from safetensors.torch import save_file
+
+from mcdenoise.cli.main import main
+from mcdenoise.data.format import ImageMeta, write_image
+from mcdenoise.io.exr import read_exr, write_exr_raw
+from mcdenoise.models import build_model, synthetic_batch
+
+H, W = 40, 52
+
+
+def _weights(path, name: str) -> str:
+    torch.manual_seed(0)
+    save_file(build_model(name, "small").state_dict(), str(path), metadata={"model": name, "preset": "small"})
+    return str(path)
+
+
+def _blender_exr(path, *, depth: bool = True, nan: int = 0, size=(H, W)) -> None:
+    """A Cycles multi-layer EXR with denoising data, as Blender names its channels."""
+    rng = np.random.default_rng(1)
+    h, w = size
+    ch = {}
+    color = (rng.random((3, h, w)) * 2).astype(np.float32)
+    color.reshape(-1)[:nan] = np.nan
+    for c, a in zip("RGB", color):
+        ch[f"ViewLayer.Noisy Image.{c}"] = a
+    for c in "RGBA":  # Blender's own (denoised) image: must not be taken as the input
+        ch[f"ViewLayer.Combined.{c}"] = np.full((h, w), 7.0, np.float32)
+    for c in "RGB":
+        ch[f"ViewLayer.Denoising Albedo.{c}"] = rng.random((h, w)).astype(np.float32)
+    for c in "XYZ":
+        ch[f"ViewLayer.Denoising Normal.{c}"] = (rng.random((h, w)) * 2 - 1).astype(np.float32)
+    if depth:
+        ch["ViewLayer.Denoising Depth.Z"] = (rng.random((h, w)) * 5).astype(np.float32)
+    write_exr_raw(path, ch)
+
+
+@pytest.fixture
+def wskp(tmp_path):
+    return _weights(tmp_path / "wskp.safetensors", "wskp")
+
+
+def _err_line(capfd) -> str:
+    err = capfd.readouterr().err
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert len(lines) == 1, err
+    return lines[0]
+
+
+def test_blender_exr_denoises(tmp_path, wskp, capfd):
+    """Catches Cycles names not reaching the model, or tiles stitched wrongly in the CLI path:
+    the tiled CLI output must equal the model on the whole image."""
+    src, out = tmp_path / "render.exr", tmp_path / "clean.exr"
+    _blender_exr(src)
+    rc = main(["denoise", str(src), "-o", str(out), "--model", wskp, "--tile", "16",
+               "--preview", str(tmp_path / "clean.png")])
+    cap = capfd.readouterr()
+    assert rc == 0, cap.err
+    assert "channels: radiance, albedo, normal, depth" in cap.out
+    got = read_exr(out)["radiance"]
+    layers = read_exr(src)
+    model = build_model("wskp", "small")
+    from mcdenoise.models.weights import load_weights
+
+    load_weights(model, wskp)
+    batch = {k: torch.from_numpy(layers[k])[None] for k in ("radiance", "albedo", "normal", "depth")}
+    with torch.no_grad():
+        want = model.eval()(batch)[0].numpy()
+    assert got.shape == (3, H, W)
+    assert np.abs(got - want).max() <= 1e-4 * np.abs(want).max()
+    assert (tmp_path / "clean.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_nonfinite_input_is_counted(tmp_path, wskp, capfd):
+    """Catches NaN input propagating into the output, or a warning without the count."""
+    src, out = tmp_path / "render.exr", tmp_path / "clean.exr"
+    _blender_exr(src, nan=5)
+    assert main(["denoise", str(src), "-o", str(out), "--model", wskp]) == 0
+    assert "5 non-finite input value(s)" in capfd.readouterr().err
+    assert np.isfinite(read_exr(out)["radiance"]).all()
+
+
+def test_separate_feature_files(tmp_path, wskp, capfd):
+    """Catches OIDN-style inputs (colour + --albedo/--normal files) not being combined."""
+    _blender_exr(tmp_path / "all.exr")
+    layers = read_exr(tmp_path / "all.exr")
+    for name, chans in (("color", "RGB"), ("albedo", "RGB"), ("normal", "RGB")):
+        arr = layers["radiance" if name == "color" else name]
+        write_exr_raw(tmp_path / f"{name}.exr", dict(zip(chans, arr)))
+    write_exr_raw(tmp_path / "depth.exr", {"Z": layers["depth"][0]})
+    rc = main(["denoise", str(tmp_path / "color.exr"), "--albedo", str(tmp_path / "albedo.exr"),
+               "--normal", str(tmp_path / "normal.exr"), "--depth", str(tmp_path / "depth.exr"),
+               "-o", str(tmp_path / "a.exr"), "--model", wskp])
+    assert rc == 0, capfd.readouterr().err
+    assert main(["denoise", str(tmp_path / "all.exr"), "-o", str(tmp_path / "b.exr"), "--model", wskp]) == 0
+    a, b = read_exr(tmp_path / "a.exr")["radiance"], read_exr(tmp_path / "b.exr")["radiance"]
+    np.testing.assert_array_equal(a, b)
+
+
+def test_image_folder_feeds_sample_model(tmp_path, capfd):
+    """Catches an image folder's per-sample buffers not reaching a sample model, in tiles."""
+    torch.manual_seed(0)
+    model = build_model("sbmc", "small")
+    batch = synthetic_batch(model, spp=2, height=H, width=W)
+    samples = {k: v[0].numpy() for k, v in batch.items() if k != "scene_features"}
+    meta = ImageMeta(width=W, height=H, spp=2, channels=list(samples), scene="t")
+    folder = write_image(tmp_path / "img", meta=meta, samples=samples)
+    weights = _weights(tmp_path / "sbmc.safetensors", "sbmc")
+    rc = main(["denoise", str(folder), "-o", str(tmp_path / "out.exr"), "--model", weights, "--tile", "24"])
+    cap = capfd.readouterr()
+    assert rc == 0, cap.err
+    assert "(per-sample)" in cap.out and "tiles" in cap.out
+    assert np.isfinite(read_exr(tmp_path / "out.exr")["radiance"]).all()
+
+
+def _refused(capfd, argv, *needles) -> None:
+    rc = main(argv)
+    line = _err_line(capfd)
+    assert rc == 1, line
+    for n in needles:
+        assert n in line, line
+
+
+def test_missing_channels_are_named(tmp_path, wskp, capfd):
+    """Catches a model run on an input without its channels (or a refusal that does not say which)."""
+    _blender_exr(tmp_path / "nodepth.exr", depth=False)
+    _refused(capfd, ["denoise", str(tmp_path / "nodepth.exr"), "-o", str(tmp_path / "o.exr"), "--model", wskp],
+             "depth", "lacks")
+
+
+def test_sample_model_on_pixels_is_refused(tmp_path, capfd):
+    """Catches a sample model silently fed per-pixel data."""
+    _blender_exr(tmp_path / "r.exr")
+    weights = _weights(tmp_path / "layer.safetensors", "layer")
+    _refused(capfd, ["denoise", str(tmp_path / "r.exr"), "-o", str(tmp_path / "o.exr"), "--model", weights],
+             "per-sample buffers")
+
+
+def test_size_mismatch(tmp_path, wskp, capfd):
+    """Catches feature files of another size being cropped or broadcast instead of refused."""
+    _blender_exr(tmp_path / "color.exr")
+    write_exr_raw(tmp_path / "alb.exr", {c: np.ones((H + 1, W), np.float32) for c in "RGB"})
+    _refused(capfd, ["denoise", str(tmp_path / "color.exr"), "--albedo", str(tmp_path / "alb.exr"),
+                     "-o", str(tmp_path / "o.exr"), "--model", wskp], "size mismatch")
+
+
+def test_unreadable_file(tmp_path, wskp, capfd):
+    """Catches a traceback (or the OpenEXR library's own stderr lines) on a corrupt file."""
+    bad = tmp_path / "bad.exr"
+    bad.write_bytes(b"v/1\x01" + b"\x00" * 64)
+    _refused(capfd, ["denoise", str(bad), "-o", str(tmp_path / "o.exr"), "--model", wskp], "bad.exr")
+
+
+def test_existing_output_needs_force(tmp_path, wskp, capfd):
+    """Catches a silent overwrite of an existing output; --force replaces it."""
+    src, out = tmp_path / "r.exr", tmp_path / "o.exr"
+    _blender_exr(src)
+    out.write_bytes(b"keep")
+    _refused(capfd, ["denoise", str(src), "-o", str(out), "--model", wskp], "already exists", "--force")
+    assert out.read_bytes() == b"keep"
+    assert main(["denoise", str(src), "-o", str(out), "--model", wskp, "--force"]) == 0
+
+
+def test_output_is_never_the_input(tmp_path, wskp, capfd):
+    """Catches the input being destroyed, even with --force and through another spelling of its path."""
+    src = tmp_path / "r.exr"
+    _blender_exr(src)
+    before = src.read_bytes()
+    other = tmp_path / "sub" / ".." / "r.exr"
+    (tmp_path / "sub").mkdir()
+    _refused(capfd, ["denoise", str(src), "-o", str(other), "--model", wskp, "--force"], "overwrite the input")
+    assert src.read_bytes() == before
