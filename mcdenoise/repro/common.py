@@ -32,8 +32,6 @@ __all__ = [
     "describe_data",
     "run_dir",
     "run_experiment",
-    "final_values",
-    "better",
     "METRIC_NAMES",
 ]
 
@@ -164,17 +162,6 @@ def _curve(run: Path) -> list[dict[str, float]]:
     return out
 
 
-def better(metric: str, a: float, b: float) -> bool:
-    """True when ``a`` is a better value of ``metric`` than ``b`` (PSNR: higher; the rest: lower)."""
-    return a > b if metric == "psnr" else a < b
-
-
-def final_values(result: dict[str, Any], metric: str | None = None) -> dict[str, float]:
-    """variant key -> its last validation value of ``metric`` (default: the experiment's)."""
-    m = metric or result["metric"]
-    return {k: v["curve"][-1][m] for k, v in result["variants"].items()}
-
-
 def run_experiment(exp: Experiment, *, data: str | Path | None = None, steps: int | None = None, seed: int = 0,
                    out: str | Path = "runs/repro", log: Callable[[str], None] = print,
                    progress: bool = False) -> dict[str, Any]:
@@ -213,8 +200,8 @@ def _run_experiment(exp: Experiment, data: str | Path | None, steps: int | None,
             raise RuntimeError(f"{run}: no finite validation values of {exp.metric}; see its metrics.csv")
         summary = json.loads((run / "result.json").read_text())
         variants[v.key] = {"label": v.label, "model": v.model, "overrides": dict(v.overrides),
-                           "parameters": _parameters(v), "wall_s": summary["wall_s"], "device": summary["device"], "run": str(run),
-                           "curve": curve, "final": {m: curve[-1][m] for m in METRIC_NAMES}}
+                           "parameters": _parameters(v), "wall_s": summary["wall_s"], "device": summary["device"],
+                           "run": str(run), "curve": curve, "final": {m: curve[-1][m] for m in METRIC_NAMES}}
         log(f"[{exp.name}] {v.label}: final val {METRIC_NAMES[exp.metric]} {curve[-1][exp.metric]:.5g}")
     result: dict[str, Any] = {
         "experiment": exp.name, "title": exp.title, "claim": exp.claim, "metric": exp.metric,

@@ -52,6 +52,8 @@ EXPERIMENT = Experiment(
               Variant("pixel_gather", "PixelGather", "pixel_gather"),
               Variant("pixel_splat", "PixelSplat", "pixel_splat")),
     metric="relmse",
+    # Sized from 12-step timings with one thread at load ~6: 0.16 / 0.20 / 0.10 / 0.10 s/step
+    # (~8.5 min for all four plus validations); not yet timed end to end (see docs/RESULTS.md).
     steps=900,
     judge=judge,
     paper_figures={"sbmc": {"rMSE 8 spp": 0.0382, "rMSE 4 spp": 0.0482},
