@@ -131,7 +131,8 @@ def test_verdicts_read_the_metric_in_the_right_direction() -> None:
 
 def test_model_overrides_reach_the_model_and_the_run_folder(tiny: Path, tmp_path: Path) -> None:
     """Catches overrides ignored by the engine (the ablation would train the preset), tuples that
-    break an exact resume (JSON reads them back as lists), and a typo'd field accepted silently."""
+    break an exact resume (JSON reads them back as lists), a typo'd field accepted silently, and
+    run folders from before the field existed refused on resume."""
     from mcdenoise.train.config import ConfigError, TrainConfig
     from mcdenoise.train.loop import train
 
@@ -142,6 +143,13 @@ def test_model_overrides_reach_the_model_and_the_run_folder(tiny: Path, tmp_path
     saved = json.loads((tmp_path / "run" / "config.json").read_text())
     assert saved["model_config"]["kernel_sizes"] == [5] and saved["train"]["model_overrides"] == {"kernel_sizes": [5]}
     assert train(cfg, tmp_path / "run", resume=True).step == 2  # same settings: accepted, nothing to do
+    # A run folder written before the field existed still resumes under a command without overrides.
+    plain = dataclasses.replace(cfg, model_overrides={})
+    train(plain, tmp_path / "old")
+    doc = json.loads((tmp_path / "old" / "config.json").read_text())
+    del doc["train"]["model_overrides"]
+    (tmp_path / "old" / "config.json").write_text(json.dumps(doc))
+    assert train(plain, tmp_path / "old", resume=True).step == 2
     with pytest.raises(ConfigError, match="kernel_sizez"):
         train(dataclasses.replace(cfg, model_overrides={"kernel_sizez": (5,)}), tmp_path / "typo")
 

@@ -230,7 +230,8 @@ def config_document(cfg: TrainConfig, *, model_config: dict[str, Any], manifest_
 
 def check_resume_config(saved: dict[str, Any], current: dict[str, Any], where: Path) -> None:
     """Refuse (one line) a resume whose settings or dataset differ from the saved run's."""
-    a, b = saved.get("train", {}), current["train"]
+    # A run saved before model_overrides existed trained without overrides.
+    a, b = {"model_overrides": {}, **saved.get("train", {})}, current["train"]
     diffs = [k for k in sorted(set(a) | set(b)) if k not in RUNTIME_FIELDS and a.get(k) != b.get(k)]
     if diffs:
         shown = "; ".join(f"{k}: run has {a.get(k)!r}, command gives {b.get(k)!r}" for k in diffs[:3])
