@@ -121,6 +121,12 @@ def test_image_folder_feeds_sample_model(tmp_path, capfd):
     assert rc == 0, cap.err
     assert "(per-sample)" in cap.out and "tiles" in cap.out
     assert np.isfinite(read_exr(tmp_path / "out.exr")["radiance"]).all()
+    # The same folder's noisy.exr (means and variances) feeds a pixel model.
+    weights = _weights(tmp_path / "kpcn_single.safetensors", "kpcn_single")
+    rc = main(["denoise", str(folder), "-o", str(tmp_path / "px.exr"), "--model", weights])
+    cap = capfd.readouterr()
+    assert rc == 0, cap.err
+    assert "radiance_variance" in cap.out and "(per-pixel)" in cap.out
 
 
 def _refused(capfd, argv, *needles) -> None:

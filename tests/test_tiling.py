@@ -27,7 +27,7 @@ PINNED = {
     "wskp": (7, 1), "wskp_mr": (22, 4),
 }
 
-H, W = 37, 43  # odd sizes: the last tiles are partial and pooling pads at the border
+H, W = 29, 35  # odd sizes: the last tiles are partial and pooling pads at the border
 
 
 def _run(model: torch.nn.Module, batch: dict[str, torch.Tensor], plan) -> np.ndarray:
@@ -57,7 +57,7 @@ def test_tiled_equals_untiled(name):
     with torch.no_grad():
         whole = model(batch)[0].numpy()
     plan = plan_tiles(H, W, receptive=receptive_field(model), align=alignment(model), core=12)
-    assert len(plan) > 4 and plan.overlap > 0
+    assert len(plan) >= 6 and plan.overlap > 0
     assert _rel(_run(model, batch, plan), whole) < 1e-4
 
 

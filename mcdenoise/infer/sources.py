@@ -21,7 +21,7 @@ import re
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Protocol
+from typing import Callable, Protocol
 
 import numpy as np
 import torch
@@ -86,7 +86,7 @@ class FolderSamples:
     def read(self, names: list[str], window: Box, core: Box) -> dict[str, np.ndarray]:
         try:
             return self.reader.read(names, crop=window)  # type: ignore[attr-defined]
-        except FormatError as e:
+        except McDenoiseError as e:  # FormatError, or the reader's NonFiniteError where it has one
             if "non-finite" not in str(e):
                 raise
         arrays, _ = self._read_sanitized(names, window)
@@ -141,12 +141,22 @@ class Inputs:
     paths: tuple[Path, ...] = ()
     label: str = "input"
     nonfinite: int = 0
+    #: Deferred reading of the pixel buffers (image folders: a sample model never needs
+    #: noisy.exr, which holds every channel and its variance -- 2.4 GB at 4K for SBMC's).
+    loader: Callable[[Inputs], None] | None = None
+    pixel_names: set[str] = field(default_factory=set)
+
+    def ensure_pixels(self) -> None:
+        """Read the deferred pixel buffers now (once)."""
+        if self.loader is not None:
+            load, self.loader = self.loader, None
+            load(self)
 
     def channels(self, kind: str) -> set[str]:
         """Channels available to models of ``input_kind`` ``kind`` (``"pixels"`` or ``"samples"``)."""
         if kind == "samples":
             return set(self.samples.channels) if self.samples is not None else set()
-        return set(self.pixels)
+        return set(self.pixel_names) if self.loader is not None else set(self.pixels)
 
     def batch(self, names: list[str], kind: str, window: Box, core: Box,
               device: torch.device | str = "cpu") -> dict[str, torch.Tensor]:
@@ -159,6 +169,7 @@ class Inputs:
             out = {k: torch.from_numpy(np.ascontiguousarray(v))[None].to(device) for k, v in arrays.items()}
             out["scene_features"] = torch.from_numpy(self.scene_features)[None].to(device)
             return out
+        self.ensure_pixels()
         y0, x0, h, w = window
         return {n: torch.from_numpy(np.ascontiguousarray(self.pixels[n][:, y0 : y0 + h, x0 : x0 + w]))[None].to(device)
                 for n in names}
@@ -235,16 +246,24 @@ def from_exr(path: str | os.PathLike, *, albedo: str | os.PathLike | None = None
 def from_folder(path: str | os.PathLike) -> Inputs:
     """Read an image folder of ``mcdenoise render``: ``noisy.exr`` whole, ``samples.bin`` lazily."""
     from mcdenoise.data.format import NOISY_FILE, SAMPLES_FILE, read_image
-    from mcdenoise.io.exr import read_exr
+    from mcdenoise.io.exr import read_exr, read_exr_header
+    from mcdenoise.io.names import group_channels
 
     folder = read_image(path)
     meta = folder.meta
     inputs = Inputs(meta.height, meta.width, {}, scene_features=meta.scene_feature_vector(),
                     paths=tuple(Path(path) / f for f in (NOISY_FILE, SAMPLES_FILE, "meta.json")), label=str(path))
     # read_exr, not folder.read_noisy: NaN/Inf are kept so that _add_pixels counts them.
-    for name, arr in read_exr(Path(path) / NOISY_FILE, unknown="drop").items():
-        if base_name(name) in CHANNELS:
-            _add_pixels(inputs, name, arr, str(Path(path) / NOISY_FILE))
+    noisy = Path(path) / NOISY_FILE
+    names = [c.name for c in read_exr_header(noisy)["channels"]]
+    inputs.pixel_names = {n for n in group_channels(names, filename=noisy.name) if base_name(n) in CHANNELS}
+
+    def load(inp: Inputs) -> None:
+        for name, arr in read_exr(noisy, unknown="drop").items():
+            if base_name(name) in CHANNELS:
+                _add_pixels(inp, name, arr, str(noisy))
+
+    inputs.loader = load
     if folder.samples is not None:
         inputs.samples = FolderSamples(folder.samples)
     return inputs
