@@ -79,22 +79,28 @@ def train_command(config_doc: dict[str, Any], out: str | Path) -> str:
     return shlex.join(args)
 
 
-def _test_metrics(results: dict[str, Any], weights: str, label: str) -> dict[str, Any]:
-    """This model's mean metrics per spp and those of the baselines on the same images (eval's results.json)."""
-    means = results.get("means") or {}
-    methods = {m.get("label") or m.get("name"): m for m in results.get("methods", []) if isinstance(m, dict)}
-    mine = next((k for k, m in methods.items() if str(m.get("weights", "")).endswith(Path(weights).name) or k == label), label)
-    out: dict[str, Any] = {"data": results.get("data"), "split": results.get("split"), "images": results.get("images_count"),
-                           "oidn_version": results.get("oidn_version"), "spp": {}}
-    for spp, per_method in means.items():
-        row = {}
-        for k, v in per_method.items():
-            if k == mine:
-                row["model"] = v
-            elif k in ("noisy", "oidn_high", "oidn_fast", "classic") or k.startswith("oidn"):
-                row[k] = v
-        if "model" in row:
-            out["spp"][str(spp)] = row
+def _test_metrics(results: dict[str, Any], weights: str) -> dict[str, Any]:
+    """This model's mean metrics per spp, and the baselines' on the same images, from eval's results.json.
+
+    The model is the method whose weights file is ``weights``; baselines are every non-model
+    method (noisy input, OIDN qualities, the classic filter). Subsets (e.g. depth of field and
+    motion blur) are kept under their names.
+    """
+    methods = results.get("methods", [])
+    target = Path(weights).resolve()
+    mine = [m["name"] for m in methods if m.get("kind") == "model" and m.get("weights") and Path(m["weights"]).resolve() == target]
+    if not mine:
+        raise WeightsError(f"eval results do not include these weights ({weights}); evaluate the run folder first")
+    baselines = {m["name"] for m in methods if m.get("kind") != "model"}
+    out: dict[str, Any] = {"data": results.get("config", {}).get("data"), "split": results.get("config", {}).get("split"),
+                           "images": len(results.get("images", [])), "oidn_version": results.get("provenance", {}).get("oidn"),
+                           "command": results.get("command"), "subsets": {}}
+    for row in results.get("summary", []):
+        name = "model" if row["method"] == mine[0] else row["method"] if row["method"] in baselines else None
+        if name is None:
+            continue
+        metrics = {k: v for k, v in row.items() if k not in ("subset", "method", "spp")}
+        out["subsets"].setdefault(row["subset"], {}).setdefault(str(row["spp"]), {})[name] = metrics
     return out
 
 
@@ -120,6 +126,7 @@ def model_card(run_dir: Path, model: Any, info: dict[str, Any], results: dict[st
             "command": train_command(doc, f"runs/{info['name']}"),
             "steps": res.get("steps", t["steps"]),
             "wall_s": res.get("wall_s"),
+            "cpu_s": res.get("cpu_s_this_call") if res.get("wall_s") == res.get("wall_s_this_call") else None,
             "device": res.get("device"),
             "threads": t.get("threads"),
             "world_size": doc.get("world_size"),
@@ -131,7 +138,7 @@ def model_card(run_dir: Path, model: Any, info: dict[str, Any], results: dict[st
         "shipped": datetime.date.today().isoformat(),
     }
     if results is not None:
-        card["test"] = _test_metrics(results, info["weights"], info.get("label", ""))
+        card["test"] = _test_metrics(results, info["weights"])
     return card
 
 
@@ -139,6 +146,8 @@ def card_markdown(card: dict[str, Any]) -> str:
     """The card as the Markdown block that docs/TRAINING.md shows for one shipped model."""
     t = card["training"]
     wall = f"{t['wall_s'] / 60:.0f} min" if t.get("wall_s") else "?"
+    if t.get("cpu_s"):
+        wall += f" ({t['cpu_s'] / 60:.0f} CPU-min)"
     lines = [f"**{card['name']}** (`{card['preset']}` preset, {card['parameters']:,} parameters, inputs: "
              f"{', '.join(card['inputs'])}): {t['steps']} steps, {wall} wall on {t.get('device')} "
              f"({t.get('threads') or 'default'} thread(s), {t.get('machine')}; the machine was shared, so wall time "
@@ -147,20 +156,26 @@ def card_markdown(card: dict[str, Any]) -> str:
         lines.append(card["dataset"]["command"])
     lines += [t["command"], f"python -m mcdenoise.models.ship runs/{card['name']} --eval REPORT/results.json --force", "```"]
     test = card.get("test") or {}
-    rows = [(spp, r) for spp, r in sorted((test.get("spp") or {}).items(), key=lambda kv: int(kv[0]))]
-    if rows:
-        lines += ["", "| spp | noisy relMSE | this model | OIDN high | OIDN fast |", "|---|---|---|---|---|"]
+    for subset, per_spp in (test.get("subsets") or {}).items():
+        rows = sorted(per_spp.items(), key=lambda kv: int(kv[0]))
+        lines += ["", f"Test relMSE ({subset} images of {test.get('data')}, {test.get('split')} split; "
+                      f"OIDN {test.get('oidn_version')} on the same images):", "",
+                  "| spp | noisy | this model | improvement | OIDN high | OIDN fast |", "|---|---|---|---|---|---|"]
         for spp, r in rows:
-            def f(k: str) -> str:
+            def f(k: str) -> float | None:
                 v = (r.get(k) or {}).get("relmse")
-                return f"{v:.4f}" if isinstance(v, (int, float)) else "-"
-            lines.append(f"| {spp} | {f('noisy')} | {f('model')} | {f('oidn_high')} | {f('oidn_fast')} |")
-        lines.append(f"\n(held-out test split: {test.get('data')}, {test.get('images')} images, OIDN {test.get('oidn_version')})")
+                return float(v) if isinstance(v, (int, float)) else None
+
+            def s(v: float | None) -> str:
+                return f"{v:.4f}" if v is not None else "-"
+            n, m = f("noisy"), f("model")
+            gain = f"{n / m:.1f}x" if n and m else "-"
+            lines.append(f"| {spp} | {s(n)} | {s(m)} | {gain} | {s(f('oidn-high'))} | {s(f('oidn-fast'))} |")
     return "\n".join(lines)
 
 
 def ship(run_dir: str | Path, *, results_json: str | Path | None = None, out_dir: Path = SHIPPED_DIR,
-         force: bool = False, docs: str | Path | None = None) -> tuple[Path, Path]:
+         force: bool = False, docs: str | Path | None = None, cpu_seconds: float | None = None) -> tuple[Path, Path]:
     """Copy ``run_dir``'s final weights into ``out_dir`` with a model card. Returns (weights, card).
 
     With ``docs`` (e.g. docs/TRAINING.md), the card's commands and test figures also go into the
@@ -181,6 +196,8 @@ def ship(run_dir: str | Path, *, results_json: str | Path | None = None, out_dir
         except (OSError, ValueError) as e:
             raise WeightsError(f"{results_json}: cannot read eval results ({e})") from None
     card = model_card(run, model, info, results)
+    if cpu_seconds is not None:  # measured outside the run (runs older than result.json's cpu_s field)
+        card["training"]["cpu_s"] = float(cpu_seconds)
     stem = f"{info['name']}-{info['preset']}"
     w_path, c_path = out_dir / f"{stem}.safetensors", out_dir / f"{stem}.json"
     if w_path.exists() and not force:
@@ -207,9 +224,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--force", action="store_true", help="replace shipped weights of the same name and preset")
     p.add_argument("--docs", type=Path, default=Path("docs/TRAINING.md"),
                    help="Markdown file whose block shipped:<name>-<preset> gets the card (default docs/TRAINING.md)")
+    p.add_argument("--cpu-seconds", type=float, help="CPU seconds the run took, when its result.json lacks them")
     a = p.parse_args(argv)
     try:
-        w, c = ship(a.run, results_json=a.eval, force=a.force, docs=a.docs)
+        w, c = ship(a.run, results_json=a.eval, force=a.force, docs=a.docs, cpu_seconds=a.cpu_seconds)
     except McDenoiseError as e:
         print(f"ship: error: {e}", file=sys.stderr)
         return 1

@@ -290,6 +290,15 @@ def _train(cfg: TrainConfig, out: Path, resume: bool, force: bool, on_step: Call
     return TrainResult(out, cfg.steps, skipped, wall, val)
 
 
+def _cpu_seconds() -> float:
+    """User+system CPU seconds of this process and its finished children (the loader workers,
+    joined before this is called): on a shared machine the honest measure of training cost."""
+    import resource
+
+    own, kids = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    return own.ru_utime + own.ru_stime + kids.ru_utime + kids.ru_stime
+
+
 def _write_final(out: Path, model: Denoiser, cfg: TrainConfig, device: torch.device, world: int, skipped: int,
                  wall_before: float, wall: float, val: dict[str, float]) -> None:
     """``model.safetensors`` (final weights) and ``result.json``, each atomically."""
@@ -298,6 +307,7 @@ def _write_final(out: Path, model: Denoiser, cfg: TrainConfig, device: torch.dev
     with atomic_file(out / WEIGHTS_FILE) as tmp:
         save_file(state_dict_for_safetensors(model), str(tmp), metadata={"model": cfg.model, "preset": cfg.preset, "step": str(cfg.steps)})
     summary = {"model": cfg.model, "preset": cfg.preset, "steps": cfg.steps, "skipped": skipped, "device": str(device),
-               "world_size": world, "wall_s": wall_before + wall, "wall_s_this_call": wall, "val": val}
+               "world_size": world, "wall_s": wall_before + wall, "wall_s_this_call": wall,
+               "cpu_s_this_call": _cpu_seconds(), "val": val}
     with atomic_file(out / RESULT_FILE) as tmp:
         tmp.write_text(json.dumps(summary, indent=1) + "\n")
