@@ -154,7 +154,10 @@ def card_markdown(card: dict[str, Any]) -> str:
              "overstates the compute).", "", "```"]
     if card["dataset"].get("command"):
         lines.append(card["dataset"]["command"])
-    lines += [t["command"], f"python -m mcdenoise.models.ship runs/{card['name']} --eval REPORT/results.json --force", "```"]
+    src = f"runs/{card['name']}" + (f"/checkpoints/step_{t['checkpoint']:08d}" if t.get("checkpoint") else "")
+    lines += [t["command"].split("  # ")[0], f"python -m mcdenoise.models.ship {src} --eval REPORT/results.json --force", "```"]
+    if t.get("note"):
+        lines += ["", f"Shipped: the {t['note']}."]
     test = card.get("test") or {}
     for subset, per_spp in (test.get("subsets") or {}).items():
         rows = sorted(per_spp.items(), key=lambda kv: int(kv[0]))
@@ -189,6 +192,9 @@ def ship(run_dir: str | Path, *, results_json: str | Path | None = None, out_dir
     if not (run / "model.safetensors").is_file():
         raise WeightsError(f"{run}: no final model.safetensors (is the run finished?)")
     model, info = load_denoiser(run)
+    checkpoint = None
+    if not (run / "config.json").is_file():  # a checkpoint folder RUN/checkpoints/step_N (early stopping)
+        checkpoint, run = run, run.parent.parent
     results = None
     if results_json is not None:
         try:
@@ -196,6 +202,11 @@ def ship(run_dir: str | Path, *, results_json: str | Path | None = None, out_dir
         except (OSError, ValueError) as e:
             raise WeightsError(f"{results_json}: cannot read eval results ({e})") from None
     card = model_card(run, model, info, results)
+    if checkpoint is not None:
+        card["training"]["checkpoint"] = info["step"]
+        card["training"]["note"] = (f"weights of step {info['step']} of the {card['training']['steps']}-step run "
+                                    f"({checkpoint.relative_to(run)}), chosen by its validation loss")
+        card["training"]["command"] += f"  # then ship runs/{info['name']}/{checkpoint.relative_to(run).as_posix()}"
     if cpu_seconds is not None:  # measured outside the run (runs older than result.json's cpu_s field)
         card["training"]["cpu_s"] = float(cpu_seconds)
     stem = f"{info['name']}-{info['preset']}"

@@ -5,7 +5,8 @@ One resolver, :func:`load_denoiser`, turns what a user types into a ready model:
 * a registered name (``"wskp"``): the weights shipped in ``mcdenoise/models/shipped/`` for that
   name (small preset unless ``preset`` says otherwise);
 * a run folder of ``mcdenoise train``: its ``config.json`` rebuilds the exact model configuration,
-  then ``model.safetensors`` (final) or else the newest complete checkpoint is loaded;
+  then ``model.safetensors`` (final) or else the newest complete checkpoint is loaded; a checkpoint
+  folder (``RUN/checkpoints/step_N``) loads that step with its run's configuration;
 * a ``.safetensors`` file: its metadata (``model``, ``preset``, and ``model_config`` when present)
   names the model; otherwise ``model=`` must.
 
@@ -142,6 +143,9 @@ def _from_run(run: Path) -> tuple[Denoiser, dict[str, Any]]:
     from mcdenoise.train.checkpoint import latest_checkpoint
     from mcdenoise.train.loop import CONFIG_FILE, WEIGHTS_FILE
 
+    checkpoint: Path | None = None
+    if not (run / CONFIG_FILE).is_file() and (run / "model.safetensors").is_file() and (run.parent.parent / CONFIG_FILE).is_file():
+        checkpoint, run = run, run.parent.parent  # runs/x/checkpoints/step_00001000: that step of run x
     try:
         doc = json.loads((run / CONFIG_FILE).read_text())
     except (OSError, ValueError) as e:
@@ -153,7 +157,9 @@ def _from_run(run: Path) -> tuple[Denoiser, dict[str, Any]]:
     model = model_from_config(name, preset, doc.get("model_config"))
     weights = run / WEIGHTS_FILE
     step: int | None = None
-    if not weights.is_file():
+    if checkpoint is not None:
+        weights = checkpoint / "model.safetensors"
+    elif not weights.is_file():
         ck = latest_checkpoint(run)
         if ck is None:
             raise WeightsError(f"{run}: run has neither {WEIGHTS_FILE} nor a complete checkpoint")
@@ -161,7 +167,8 @@ def _from_run(run: Path) -> tuple[Denoiser, dict[str, Any]]:
     load_weights(model, weights)
     if step is None:
         step = int(_metadata(weights).get("step", train.get("steps", 0)) or 0)
-    return model, {"name": name, "preset": preset, "weights": str(weights), "source": "run", "step": step, "label": run.name}
+    label = run.name if checkpoint is None else f"{run.name}@{step}"
+    return model, {"name": name, "preset": preset, "weights": str(weights), "source": "run", "step": step, "label": label}
 
 
 def load_denoiser(spec: str | Path, *, preset: str | None = None, model: str | None = None,
