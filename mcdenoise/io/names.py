@@ -180,7 +180,9 @@ def group_channels(
             pairs = [(f"{layer}.{c}" if layer else c, cmap[c]) for c in comps if c in cmap]
             pairs.sort(key=lambda p: order.index(p[1]))
             scale = 1.0 / spp if (rename.per_sample_variance and spp) else 1.0
-            if target not in out:  # first source wins (e.g. two view layers)
+            # First source wins (e.g. two view layers). An entry that claims none of the layer's
+            # components (a lone top-level "Z" or "Y": a depth file) is no source at all.
+            if target not in out and pairs:
                 out[target] = (pairs, scale)
             # Components the entry does not claim (pbrt's top-level u, v...) are kept; alpha is not.
             comps = [c for c in comps if c not in cmap and c != "A"]
