@@ -93,6 +93,13 @@ def test_card_relmse_forms():
     assert card_relmse({"test": {"relmse": {"4spp": 0.2, "8spp": 0.1, "32spp": 0.02}}}) == 0.1
     assert card_relmse({"test": {"relmse_by_spp": {"16": 0.3, "4": 0.5}}}) == 0.5
     assert card_relmse({"test": {"psnr": 30}}) is None and card_relmse({}) is None
+    # The card mcdenoise.models.ship writes: the model's row of the "all" subset, at 8 spp.
+    shipped_card = {"test": {"subsets": {
+        "dof_motion": {"8": {"model": {"relmse": 0.9}}},
+        "all": {"4": {"model": {"relmse": 0.4}, "noisy": {"relmse": 2.0}},
+                "8": {"model": {"relmse": 0.3}, "noisy": {"relmse": 1.0}}},
+    }}}
+    assert card_relmse(shipped_card) == 0.3
 
 
 @pytest.fixture

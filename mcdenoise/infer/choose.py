@@ -34,13 +34,22 @@ def _as_float(v: Any) -> float | None:
 def card_relmse(card: dict[str, Any]) -> float | None:
     """The test relMSE of a model card, or None.
 
-    Reads ``card["test"]``: the first key containing ``relmse`` (any case). Its value is a number,
+    Reads ``card["test"]``: the ``"model"`` row of its ``"all"`` subset (the card of
+    :mod:`mcdenoise.models.ship`), else the first key containing ``relmse`` (any case), whose value is a number,
     or a mapping spp -> number (keys like ``8``, ``"8"`` or ``"8spp"``), of which the entry for
     :data:`RANK_SPP` spp is used, else the one with the fewest spp.
     """
     test = card.get("test") if isinstance(card, dict) else None
     if not isinstance(test, dict):
         return None
+    # The form `mcdenoise.models.ship` writes: subsets -> subset -> spp -> method -> metrics, with
+    # this model under "model" and the "all" subset covering every test image.
+    subsets = test.get("subsets")
+    if isinstance(subsets, dict) and subsets:
+        per_spp = subsets.get("all") or next(iter(subsets.values()))
+        if isinstance(per_spp, dict):
+            test = {"relmse": {k: ((v or {}).get("model") or {}).get("relmse") for k, v in per_spp.items()
+                               if isinstance(v, dict)}}
     for key, value in test.items():
         if "relmse" not in str(key).lower():
             continue
