@@ -1,20 +1,13 @@
 """Timing helper shared by the benchmark scripts (run as ``python benchmarks/bench_*.py``, so this
-folder is on ``sys.path``)."""
+folder is on ``sys.path``). The one copy lives in :mod:`mcdenoise.bench.timing`."""
 
 from __future__ import annotations
 
-import statistics
-import time
-from typing import Any, Callable
+import sys
+from pathlib import Path
 
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-def median_time(fn: Callable[[], Any], repeats: int, warmup: int = 0) -> float:
-    """Median wall time in seconds of ``repeats`` calls of ``fn`` after ``warmup`` untimed ones."""
-    for _ in range(warmup):
-        fn()
-    ts = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        ts.append(time.perf_counter() - t0)
-    return statistics.median(ts)
+from mcdenoise.bench.timing import median_time  # noqa: E402
+
+__all__ = ["median_time"]

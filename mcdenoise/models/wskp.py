@@ -119,7 +119,9 @@ class RepVGGBlock(nn.Module):
             y = sum(bn(conv(x)) for conv, bn in zip(self.convs, self.bns))
             if self.identity is not None:
                 y = y + self.identity(x)
-        return F.relu(y) if self.activation else y
+        # In place: y is a fresh sum or convolution output that no backward needs (ReLU's
+        # backward uses its own result), so no second (B, out_ch, H, W) tensor is made.
+        return F.relu(y, inplace=True) if self.activation else y
 
     @staticmethod
     def _fold(weight: torch.Tensor, bn: nn.BatchNorm2d) -> tuple[torch.Tensor, torch.Tensor]:

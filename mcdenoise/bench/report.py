@@ -1,0 +1,151 @@
+"""Markdown tables of a ``mcdenoise bench`` result (the dict of :func:`mcdenoise.bench.run.run_bench`).
+
+Ratios to OIDN divide by OIDN's median at the same size from the same rounds (OIDN is timed in
+the group of the pixel models and of the sample models at 8 spp). The fraction of peak is the
+model's convolution/matmul FLOPs (counted at 64x64, per output pixel) times the pixel count over
+its time, divided by the GFLOP/s of one large 3x3 convolution measured in the same run.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from mcdenoise.bench.plan import TARGETS
+
+__all__ = ["ratios", "target_rows", "markdown"]
+
+
+def _ok(res: dict[str, Any]) -> list[dict[str, Any]]:
+    return [e for e in res["entries"] if e["status"] == "ok"]
+
+
+def _oidn(res: dict[str, Any], w: int, h: int, quality: str) -> float | None:
+    for e in _ok(res):
+        if e["method"] == f"oidn:{quality}" and (e["width"], e["height"]) == (w, h):
+            return e["median_s"]
+    return None
+
+
+def ratios(res: dict[str, Any], entry: dict[str, Any]) -> dict[str, float | None]:
+    """``{"high": t / t_oidn_high, "fast": t / t_oidn_fast}`` at the entry's size (None if unmeasured)."""
+    out: dict[str, float | None] = {}
+    for q in ("high", "fast"):
+        t = _oidn(res, entry["width"], entry["height"], q)
+        out[q] = entry["median_s"] / t if t else None
+    return out
+
+
+def target_rows(res: dict[str, Any], size: tuple[int, int] = (1920, 1080)) -> list[dict[str, Any]]:
+    """Issue 12's CPU targets against this run: method, spp, limit, ratio (None: not measured), met."""
+    rows = []
+    for label, spp, limit in TARGETS:
+        hit = [e for e in _ok(res) if e["method"] == label and e["spp"] == spp and (e["width"], e["height"]) == size]
+        if not hit and label not in res["config"]["methods"]:
+            continue
+        r = ratios(res, hit[0])["high"] if hit else None
+        rows.append({"method": label, "spp": spp, "limit": limit, "ratio": r,
+                     "median_s": hit[0]["median_s"] if hit else None, "met": r is not None and r <= limit})
+    return rows
+
+
+def _fmt(x: float | None, spec: str, none: str = "-") -> str:
+    return none if x is None else format(x, spec)
+
+
+def _ms(s: float) -> str:
+    return f"{s * 1e3:,.0f}" if s >= 1 else f"{s * 1e3:.1f}"
+
+
+def markdown(res: dict[str, Any], command: str = "") -> str:
+    """The whole report: machine, timing tables per size, spp scaling, training, targets, skips."""
+    m = res["machine"]
+    pk = res["peak_conv"]
+    lines = [
+        f"Measured {m['date']} on {m['cpu']}, {m['cores']} cores, {m.get('memory_gib', '?')} GiB, "
+        f"torch {m['torch']} ({m['torch_threads']} threads), OIDN {m['oidn']}, device {m['device']}"
+        + (f" ({m['gpu']})" if m.get("gpu") else "") + f"; load average {m.get('load_start')} at start, "
+        f"{m.get('load_end')} at end; {res['wall_s']:.0f} s wall.",
+        "",
+    ]
+    if command:
+        lines += [f"Command: `{command}`", ""]
+    c = res["config"]
+    lines += [
+        f"Median of {c['rounds']} interleaved rounds after {c['warmup']} warm-up call(s); fast inference paths "
+        f"{'on' if c['fast'] else 'off'}. Peak memory: {res['memory_method']}. Machine peak: a 3x3 convolution, "
+        f"{pk['channels']} channels at {pk['side']}x{pk['side']}, ran at **{pk['gflops']:.1f} GFLOP/s**.",
+        "",
+    ]
+    sizes = [tuple(s) for s in c["sizes"]]
+    for w, h in sizes:
+        rows = [e for e in _ok(res) if (e["width"], e["height"]) == (w, h)]
+        if not rows:
+            continue
+        lines += [f"### {w}x{h}", "",
+                  "| method | spp | median ms | x OIDN high | x OIDN fast | peak MiB above inputs | MFLOP/pixel | % of peak |",
+                  "|---|---:|---:|---:|---:|---:|---:|---:|"]
+        for e in sorted(rows, key=lambda e: (not e["method"].startswith("oidn"), e["method"], e["spp"] or 0)):
+            r = ratios(res, e)
+            fpp = e.get("flops_per_pixel")
+            frac = fpp * w * h / e["median_s"] / (pk["gflops"] * 1e9) * 100 if fpp else None
+            peak = e.get("peak_bytes")
+            lines.append(
+                f"| {e['method']} | {e['spp'] if e['spp'] is not None else '-'} | {_ms(e['median_s'])} | "
+                f"{_fmt(r['high'], '.3g')} | {_fmt(r['fast'], '.3g')} | {_fmt(peak / 2**20 if peak is not None else None, ',.0f')} | "
+                f"{_fmt(fpp / 1e6 if fpp else None, '.3g')} | {_fmt(frac, '.1f')} |")
+        lines.append("")
+    lines += _scaling(res, sizes)
+    lines += _training(res)
+    tr = target_rows(res)
+    if tr:
+        lines += ["### Targets (CPU, ratio to OIDN high at 1920x1080, same run)", "",
+                  "| method | spp | limit | measured | median ms | met |", "|---|---:|---:|---:|---:|---|"]
+        for t in tr:
+            lines.append(f"| {t['method']} | {t['spp'] or '-'} | <= {t['limit']:g}x | {_fmt(t['ratio'], '.3g', 'not measured')} | "
+                         f"{_ms(t['median_s']) if t['median_s'] else '-'} | {'yes' if t['met'] else '**no**'} |")
+        lines.append("")
+    other = [e for e in res["entries"] if e["status"] != "ok"]
+    if other:
+        lines += ["Not measured:", ""]
+        lines += [f"- {e['method']} {e['width']}x{e['height']}" + (f" {e['spp']} spp" if e["spp"] else "")
+                  + f": {e['status']}, {e['reason']}" for e in other]
+        lines.append("")
+    return "\n".join(lines)
+
+
+def _scaling(res: dict[str, Any], sizes: list[tuple[int, int]]) -> list[str]:
+    spps = sorted(res["config"]["spp"])
+    if len(spps) < 2:
+        return []
+    out = ["### Time against spp (time / time at the lowest spp measured)", "",
+           "| method | size | " + " | ".join(f"{s} spp" for s in spps) + " |",
+           "|---|---|" + "---:|" * len(spps)]
+    found = False
+    for w, h in sizes:
+        per: dict[str, dict[int, float]] = {}
+        for e in _ok(res):
+            if (e["width"], e["height"]) == (w, h) and e["spp"] is not None:
+                per.setdefault(e["method"], {})[e["spp"]] = e["median_s"]
+        for method, ts in sorted(per.items()):
+            if len(ts) < 2:
+                continue
+            base = ts[min(ts)]
+            out.append(f"| {method} | {w}x{h} | " + " | ".join(_fmt(ts[s] / base if s in ts else None, '.2f') for s in spps) + " |")
+            found = True
+    return out + [""] if found else []
+
+
+def _training(res: dict[str, Any]) -> list[str]:
+    if not res["training"]:
+        return []
+    t = res["config"]["train"]
+    out = [f"### Training throughput (batch {t['batch']}, {t['crop']}x{t['crop']} crops, {t['spp']} spp for sample "
+           "models; forward, loss, backward, clipped Adam step on crops in memory)", "",
+           "| method | parameters (inference form) | s/step | crops/s |", "|---|---:|---:|---:|"]
+    for r in res["training"]:
+        p = res["parameters"].get(r["method"])
+        if "error" in r:
+            out.append(f"| {r['method']} | {_fmt(p, ',d')} | error: {r['error']} | - |")
+        else:
+            out.append(f"| {r['method']} | {_fmt(p, ',d')} | {r['s_per_step']:.3f} | {r['crops_per_s']:.1f} |")
+    return out + [""]

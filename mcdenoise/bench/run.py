@@ -1,0 +1,343 @@
+"""Run the measurements of ``mcdenoise bench``; see :mod:`mcdenoise.bench.plan` for what and
+docs/PERFORMANCE.md for the figures. Results are a JSON-ready dict (``run_bench``); tables are
+made by :mod:`mcdenoise.bench.report`."""
+
+from __future__ import annotations
+
+import datetime
+import os
+import platform
+import statistics
+import sys
+import time
+from typing import Any, Callable
+
+import torch
+import torch.nn.functional as F
+from torch.utils.flop_counter import FlopCounterMode
+
+from mcdenoise.bench.memory import MEMORY_METHOD, peak_call_memory
+from mcdenoise.bench.plan import ANCHOR_SPP, BenchConfig, Method, default_methods, priority
+from mcdenoise.bench.timing import interleaved_times, median_time, synchronizer
+from mcdenoise.data.channels import base_name, num_components
+from mcdenoise.models.inference import inference_context, prepare_inference
+from mcdenoise.models.registry import build_model, synthetic_batch
+
+__all__ = ["run_bench", "machine_info", "peak_conv_gflops"]
+
+Log = Callable[[str], None]
+
+
+def _stderr(msg: str) -> None:
+    print(msg, file=sys.stderr, flush=True)
+
+
+def machine_info(device: str) -> dict[str, Any]:
+    """CPU model, cores, memory, torch and OIDN versions, load average, date."""
+    cpu = platform.processor() or platform.machine()
+    try:
+        with open("/proc/cpuinfo") as f:
+            cpu = next((l.split(":", 1)[1].strip() for l in f if l.startswith("model name")), cpu)
+    except OSError:
+        pass
+    info: dict[str, Any] = {
+        "date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
+        "cpu": cpu, "cores": os.cpu_count(), "torch": torch.__version__, "torch_threads": torch.get_num_threads(),
+        "python": platform.python_version(), "device": device,
+    }
+    try:
+        with open("/proc/meminfo") as f:
+            mem = {l.split(":")[0]: int(l.split()[1]) for l in f}
+        info["memory_gib"] = round(mem["MemTotal"] / 2**20, 1)
+    except (OSError, KeyError, ValueError):
+        pass
+    if hasattr(os, "getloadavg"):
+        info["load_start"] = round(os.getloadavg()[0], 2)
+    if device.startswith("cuda"):
+        info["gpu"] = torch.cuda.get_device_name(torch.device(device))
+    try:
+        from mcdenoise.eval.oidn import version
+
+        info["oidn"] = version()
+    except Exception as e:  # noqa: BLE001 -- reported, not fatal: OIDN entries then fail alike
+        info["oidn"] = f"unavailable ({e})"
+    return info
+
+
+def _available_bytes() -> int:
+    try:
+        with open("/proc/meminfo") as f:
+            mem = {l.split(":")[0]: int(l.split()[1]) for l in f}
+        return mem["MemAvailable"] * 1024
+    except (OSError, KeyError, ValueError):
+        return 8 << 30
+
+
+def peak_conv_gflops(channels: int, side: int, device: str, repeats: int = 5) -> float:
+    """GFLOP/s of one large 3x3 convolution ``(1, channels, side, side)``: the machine's practical
+    peak for the layers our models are made of (a multiply-add counts 2)."""
+    g = torch.Generator().manual_seed(0)
+    x = torch.randn((1, channels, side, side), generator=g).to(device)
+    w = torch.randn((channels, channels, 3, 3), generator=g).to(device) * 0.01
+    flops = 2.0 * channels * channels * 9 * side * side
+    sync = synchronizer(device)
+
+    def call() -> None:
+        with torch.inference_mode():
+            F.conv2d(x, w, padding=1)
+        sync()
+
+    return flops / median_time(call, repeats, warmup=1) / 1e9
+
+
+class _Channels:
+    """Duck-typed stand-in for a model in :func:`synthetic_batch`: the union of several models'
+    channels, so one set of inputs per (size, spp) serves every model (the inputs at 1080p and 8
+    spp are gigabytes)."""
+
+    def __init__(self, names: list[str], input_kind: str) -> None:
+        self.names, self.input_kind = names, input_kind
+
+    def required_channels(self) -> list[str]:
+        return self.names
+
+
+def _input_bytes(names: list[str], spp: int, width: int, height: int) -> int:
+    return sum(num_components(base_name(n)) for n in names if n != "scene_features") * spp * width * height * 4
+
+
+def _flops_per_pixel(model: torch.nn.Module, spp: int | None, device: str, side: int = 64) -> float:
+    """Convolution/matmul FLOPs per output pixel of the model as timed (see models/info.py)."""
+    batch = {k: v.to(device) for k, v in synthetic_batch(model, spp=spp or 1, height=side, width=side).items()}
+    counter = FlopCounterMode(display=False)
+    with inference_context(True), counter:
+        model(batch)
+    return counter.get_total_flops() / float(side * side)
+
+
+def _train_throughput(m: Method, cfg: BenchConfig) -> dict[str, Any]:
+    """Crops per second of full training steps (forward, loss, backward, clipped Adam) on
+    synthetic crops already in memory: what the model costs, not the data loader."""
+    from mcdenoise.train.config import TrainConfig
+    from mcdenoise.train.trainer import Trainer
+
+    torch.manual_seed(cfg.seed)
+    model = build_model(m.name, m.preset).to(cfg.device)
+    tcfg = TrainConfig(model=m.name, preset=m.preset, data="", steps=10**6, batch=cfg.train_batch,
+                       crop=cfg.train_crop, workers=0).resolved(model.input_kind)
+    trainer = Trainer(model, tcfg, torch.device(cfg.device))
+    g = torch.Generator().manual_seed(cfg.seed)
+    batch = synthetic_batch(model, batch=cfg.train_batch, spp=cfg.train_spp, height=cfg.train_crop,
+                            width=cfg.train_crop, generator=g)
+    batch["target"] = torch.rand((cfg.train_batch, 3, cfg.train_crop, cfg.train_crop), generator=g) + 0.1
+    batch = {k: v.to(cfg.device) for k, v in batch.items()}
+    sync = synchronizer(cfg.device)
+    step = tcfg.steps - 1  # past KPCN's per-branch phase: the image loss, as most of training runs
+
+    def call() -> None:
+        trainer.step(batch, step)
+        sync()
+
+    s = median_time(call, cfg.train_steps, warmup=1)
+    return {"method": m.label, "batch": cfg.train_batch, "crop": cfg.train_crop,
+            "spp": cfg.train_spp if model.input_kind == "samples" else None,
+            "s_per_step": s, "crops_per_s": cfg.train_batch / s}
+
+
+class _Runner:
+    def __init__(self, cfg: BenchConfig, log: Log) -> None:
+        self.cfg, self.log = cfg, log
+        self.methods = cfg.methods or default_methods()
+        self.models: dict[str, torch.nn.Module] = {}
+        self.kind: dict[str, str] = {}
+        for m in self.methods:
+            if m.is_oidn:
+                self.kind[m.label] = "oidn"
+                continue
+            torch.manual_seed(cfg.seed)
+            model = build_model(m.name, m.preset).to(cfg.device)
+            self.models[m.label] = prepare_inference(model, fast=cfg.fast)
+            self.kind[m.label] = model.input_kind
+        self.measured: dict[tuple[str, int | None], tuple[int, float]] = {}  # -> (pixels, seconds)
+        self.entries: list[dict[str, Any]] = []
+        self.flops: dict[tuple[str, int | None], float] = {}
+
+    # -- planning ---------------------------------------------------------------------------
+    def _estimate(self, label: str, spp: int | None, pixels: int) -> float | None:
+        got = self.measured.get((label, spp))
+        return None if got is None else got[1] * pixels / got[0]
+
+    def _plan(self, w: int, h: int, first: bool, budget: float) -> tuple[list[tuple[Method, int | None]], float]:
+        cfg = self.cfg
+        spps = sorted(cfg.spp, key=lambda s: (s != ANCHOR_SPP, s))
+        cands: list[tuple[Method, int | None]] = []
+        for m in self.methods:
+            if self.kind[m.label] == "samples":
+                cands += [(m, s) for s in spps]
+            else:
+                cands.append((m, None))
+        if first:
+            return cands, 0.0
+        per_call = cfg.warmup + cfg.rounds
+        keyed = []
+        for m, s in cands:
+            est = self._estimate(m.label, s, w * h)
+            keyed.append((priority(m, s), est if est is not None else float("inf"), m, s))
+        keyed.sort(key=lambda t: (t[0], t[1]))
+        chosen, spent = [], 0.0
+        for prio, est, m, s in keyed:
+            cost = est * per_call
+            if prio == 0 or spent + cost <= budget:
+                chosen.append((m, s))
+                spent += cost if cost != float("inf") else 0.0
+            else:
+                why = "not measured at a smaller size" if est == float("inf") else \
+                    f"estimated {est:.1f} s per call, over the time budget left for this size"
+                self._skip(m, s, w, h, why)
+        return chosen, spent
+
+    def _skip(self, m: Method, spp: int | None, w: int, h: int, why: str) -> None:
+        self.entries.append({"method": m.label, "width": w, "height": h, "spp": spp, "status": "skipped", "reason": why})
+
+    # -- inputs -----------------------------------------------------------------------------
+    def _inputs(self, labels: list[str], kind: str, spp: int, w: int, h: int) -> dict[str, torch.Tensor]:
+        names: list[str] = []
+        for lb in labels:
+            names += [n for n in self.models[lb].required_channels() if n not in names]
+        g = torch.Generator().manual_seed(self.cfg.seed + spp)
+        b = synthetic_batch(_Channels(names, kind), spp=spp, height=h, width=w, generator=g)  # type: ignore[arg-type]
+        return {k: v.to(self.cfg.device) for k, v in b.items()}
+
+    def _oidn_inputs(self, w: int, h: int) -> dict[str, Any]:
+        g = torch.Generator().manual_seed(self.cfg.seed)
+        b = synthetic_batch(_Channels(["radiance", "albedo", "normal"], "pixels"), height=h, width=w, generator=g)  # type: ignore[arg-type]
+        return {k: v[0].numpy() for k, v in b.items()}
+
+    # -- one group of entries timed in the same rounds --------------------------------------
+    def _group(self, entries: list[tuple[Method, int | None]], spp: int, w: int, h: int) -> None:
+        cfg = self.cfg
+        calls: dict[str, Callable[[], Any]] = {}
+        keys: dict[str, tuple[Method, int | None]] = {}
+        by_kind: dict[str, list[str]] = {"pixels": [], "samples": []}
+        for m, s in entries:
+            if not m.is_oidn:
+                by_kind[self.kind[m.label]].append(m.label)
+        inputs: dict[str, dict[str, torch.Tensor]] = {}
+        avail = _available_bytes()
+        for kind, labels in by_kind.items():
+            if not labels:
+                continue
+            names = sorted({n for lb in labels for n in self.models[lb].required_channels()})
+            need = _input_bytes(names, spp if kind == "samples" else 1, w, h)
+            if need > cfg.memory_fraction * avail:
+                for m, s in entries:
+                    if not m.is_oidn and self.kind[m.label] == kind:
+                        self._skip(m, s, w, h, f"inputs {need / 2**30:.1f} GiB > {cfg.memory_fraction:.0%} of available memory")
+                entries = [(m, s) for m, s in entries if m.is_oidn or self.kind[m.label] != kind]
+                continue
+            inputs[kind] = self._inputs(labels, kind, spp if kind == "samples" else 1, w, h)
+        oidn_in = self._oidn_inputs(w, h) if any(m.is_oidn for m, _ in entries) else None
+        for m, s in entries:
+            name = f"{m.label}@{s}" if s is not None else m.label
+            keys[name] = (m, s)
+            if m.is_oidn:
+                from mcdenoise.eval.oidn import oidn_denoise
+
+                calls[name] = lambda q=m.preset: oidn_denoise(oidn_in["radiance"], oidn_in["albedo"], oidn_in["normal"], quality=q)
+            else:
+                model = self.models[m.label]
+                src = inputs[self.kind[m.label]]
+                batch = {k: src[k] for k in model.required_channels() if k != "scene_features"}
+                if "scene_features" in src:
+                    batch["scene_features"] = src["scene_features"]
+
+                def call(model: torch.nn.Module = model, batch: dict = batch) -> Any:
+                    with inference_context(cfg.fast):
+                        return model(batch)
+
+                calls[name] = call
+        peaks: dict[str, int | None] = {}
+        ok: dict[str, Callable[[], Any]] = {}
+        sync = synchronizer(cfg.device)
+        for name, fn in calls.items():  # warm-up; the first call also measures peak memory
+            try:
+                for i in range(cfg.warmup):
+                    if i == 0:
+                        _, peaks[name] = peak_call_memory(lambda: (fn(), sync()), cfg.device)
+                    else:
+                        fn()
+                        sync()
+                ok[name] = fn
+            except Exception as e:  # noqa: BLE001 -- one failed entry is reported, the others still run
+                m, s = keys[name]
+                self.entries.append({"method": m.label, "width": w, "height": h, "spp": s, "status": "error",
+                                     "reason": " ".join(str(e).split())[:200]})
+        times = interleaved_times(ok, cfg.rounds, sync=sync)
+        for name, ts in times.items():
+            m, s = keys[name]
+            med = statistics.median(ts)
+            self.measured[(m.label, s)] = (w * h, med)
+            row: dict[str, Any] = {"method": m.label, "width": w, "height": h, "spp": s, "status": "ok",
+                                   "median_s": med, "times_s": ts, "peak_bytes": peaks.get(name)}
+            if not m.is_oidn:
+                key = (m.label, s)
+                if key not in self.flops:
+                    self.flops[key] = _flops_per_pixel(self.models[m.label], s, cfg.device)
+                row["flops_per_pixel"] = self.flops[key]
+            self.entries.append(row)
+            self.log(f"  {w}x{h} {name}: {med * 1e3:.1f} ms" + (f", peak {peaks[name] / 2**20:.0f} MiB" if peaks.get(name) is not None else ""))
+
+    def run(self) -> None:
+        cfg = self.cfg
+        sizes = list(cfg.sizes)
+        budget = cfg.budget_s
+        for i, (w, h) in enumerate(sizes):
+            rest_px = sum(a * b for a, b in sizes[i:])
+            share = budget * w * h / rest_px if i else 0.0
+            chosen, planned = self._plan(w, h, i == 0, share)
+            t0 = time.perf_counter()
+            spps = sorted(cfg.spp, key=lambda s: (s != ANCHOR_SPP, s))
+            anchor = spps[0]
+            for spp in spps:
+                group = [(m, s) for m, s in chosen if s == spp or (spp == anchor and s is None)]
+                if group:
+                    self.log(f"{w}x{h}, {spp} spp: {len(group)} entries")
+                    self._group(group, spp, w, h)
+            if i:
+                budget = max(0.0, budget - (time.perf_counter() - t0))
+
+
+def run_bench(cfg: BenchConfig, log: Log = _stderr) -> dict[str, Any]:
+    """Every measurement of one bench run, as a JSON-ready dict (see module docstring)."""
+    t0 = time.perf_counter()
+    info = machine_info(cfg.device)
+    log(f"bench on {info['cpu']} ({info['cores']} cores, {info['torch_threads']} torch threads), device {cfg.device}")
+    gflops = peak_conv_gflops(cfg.peak_conv[0], cfg.peak_conv[1], cfg.device)
+    log(f"peak 3x3 conv {cfg.peak_conv[0]} channels: {gflops:.1f} GFLOP/s")
+    runner = _Runner(cfg, log)
+    runner.run()
+    training = []
+    if cfg.train_steps > 0:
+        for m in runner.methods:
+            if m.is_oidn:
+                continue
+            try:
+                training.append(_train_throughput(m, cfg))
+                log(f"  train {m.label}: {training[-1]['crops_per_s']:.1f} crops/s")
+            except Exception as e:  # noqa: BLE001 -- reported in the table
+                training.append({"method": m.label, "error": " ".join(str(e).split())[:200]})
+    info["load_end"] = round(os.getloadavg()[0], 2) if hasattr(os, "getloadavg") else None
+    params = {lb: sum(p.numel() for p in mdl.parameters()) for lb, mdl in runner.models.items()}
+    return {
+        "machine": info,
+        "config": {"sizes": [list(s) for s in cfg.sizes], "spp": list(cfg.spp), "warmup": cfg.warmup,
+                   "rounds": cfg.rounds, "budget_s": cfg.budget_s, "fast": cfg.fast, "device": cfg.device,
+                   "methods": [m.label for m in runner.methods], "train": {"batch": cfg.train_batch,
+                   "crop": cfg.train_crop, "spp": cfg.train_spp, "steps": cfg.train_steps}},
+        "memory_method": MEMORY_METHOD if not cfg.device.startswith("cuda") else "torch.cuda.max_memory_allocated above the allocation before the call",
+        "peak_conv": {"channels": cfg.peak_conv[0], "side": cfg.peak_conv[1], "gflops": gflops},
+        "parameters": params,
+        "entries": runner.entries,
+        "training": training,
+        "wall_s": time.perf_counter() - t0,
+    }

@@ -1,0 +1,151 @@
+"""mcdenoise bench: interleaved timing, per-call peak memory, the time budget, ratios/targets,
+and the command on a reduced set (the full ``--quick`` is a slow test)."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+
+from mcdenoise.bench.memory import cpu_peak_supported, peak_call_memory
+from mcdenoise.bench.plan import BenchConfig, parse_method, priority, quick_config
+from mcdenoise.bench.report import markdown, ratios, target_rows
+from mcdenoise.bench.timing import interleaved_times
+from mcdenoise.cli.main import main
+from mcdenoise.eval.oidn import oidn_available
+
+needs_oidn = pytest.mark.skipif(not oidn_available(), reason="pyoidn (OIDN 2.5.1) not installed")
+
+
+def test_interleaved_times_round_robin() -> None:
+    """Bug caught: methods timed in blocks (all rounds of A, then of B), so a burst of background
+    load lands on one method only; the call order must be A B A B."""
+    order: list[str] = []
+    out = interleaved_times({"a": lambda: order.append("a"), "b": lambda: order.append("b")}, 3)
+    assert order == ["a", "b"] * 3
+    assert {k: len(v) for k, v in out.items()} == {"a": 3, "b": 3}
+
+
+@pytest.mark.skipif(not cpu_peak_supported(), reason="needs Linux /proc/self/clear_refs")
+def test_peak_memory_is_per_call_and_sees_torch() -> None:
+    """Bugs caught: a Python-heap measure (tracemalloc sees 0 of a torch tensor), and a
+    process-wide peak (ru_maxrss) that reports the earlier large call again for a small one."""
+    mib = 2**20
+
+    def big() -> None:
+        x = torch.empty(96 * mib // 4)
+        x.fill_(1.0)  # touch every page: RSS counts touched pages only
+        del x
+
+    _, first = peak_call_memory(big)
+    assert first is not None and 88 * mib < first < 140 * mib, first
+    _, small = peak_call_memory(lambda: torch.ones(mib // 4).sum())
+    assert small is not None and small < 40 * mib, small
+
+
+def test_parse_method_and_priority() -> None:
+    """Bug caught: a target entry (kept whatever the budget) demoted, or OIDN dropped for time."""
+    assert parse_method("wskp").label == "wskp:small" and parse_method("oidn").label == "oidn:high"
+    assert priority(parse_method("oidn:fast"), None) == 0
+    assert priority(parse_method("sbmc:small"), 8) == 0 and priority(parse_method("sbmc:small"), 32) == 2
+    assert priority(parse_method("wskp:paper"), None) == 0 and priority(parse_method("dpcn"), None) == 1
+
+
+def _fake_result() -> dict:
+    e = lambda m, s, t: {"method": m, "width": 1920, "height": 1080, "spp": s, "status": "ok", "median_s": t,
+                         "times_s": [t], "peak_bytes": 2**20}
+    return {"machine": {"date": "d", "cpu": "c", "cores": 2, "torch": "t", "torch_threads": 2, "oidn": "2.5.1",
+                        "device": "cpu"},
+            "config": {"sizes": [[1920, 1080]], "spp": [1, 8], "warmup": 1, "rounds": 3, "fast": True, "device": "cpu",
+                       "methods": ["oidn:high", "oidn:fast", "wskp:paper", "sbmc:small"], "train": {}},
+            "memory_method": "m", "peak_conv": {"channels": 8, "side": 8, "gflops": 10.0}, "parameters": {},
+            "entries": [e("oidn:high", None, 3.0), e("oidn:fast", None, 1.5), e("wskp:paper", None, 0.6),
+                        e("sbmc:small", 8, 45.0), e("sbmc:small", 1, 9.0)],
+            "training": [], "wall_s": 1.0}
+
+
+def test_ratios_and_targets() -> None:
+    """Bug caught: ratios taken against the wrong OIDN quality or size, a target marked met
+    above its limit, or a target silently dropped when its model was not measured."""
+    res = _fake_result()
+    assert ratios(res, res["entries"][2]) == {"high": pytest.approx(0.2), "fast": pytest.approx(0.4)}
+    rows = {r["method"]: r for r in target_rows(res)}
+    assert rows["wskp:paper"]["met"] and rows["wskp:paper"]["ratio"] == pytest.approx(0.2)
+    assert not rows["sbmc:small"]["met"] and rows["sbmc:small"]["ratio"] == pytest.approx(15.0)
+    assert "kpcn:small" not in rows  # not asked for: no row
+    text = markdown(res)
+    assert "| sbmc:small | 8 | <= 10x | 15 |" in text
+    assert "| sbmc:small | 1920x1080 | 1.00 | 5.00 |" in text  # spp scaling relative to 1 spp
+
+
+@needs_oidn
+def test_run_bench_reduced_set_and_budget() -> None:
+    """Bugs caught: entries missing or unpaired with OIDN, JSON that does not serialise, and a
+    budget that is ignored (with 0 s left for the second size, only OIDN and targets run)."""
+    from mcdenoise.bench.run import run_bench
+
+    methods = [parse_method(t) for t in ("oidn:high", "oidn:fast", "wskp:small", "layer_optimized:small")]
+    cfg = BenchConfig(methods=methods, sizes=((24, 24), (40, 32)), spp=(1, 8), rounds=1, budget_s=0.0,
+                      train_batch=2, train_crop=16, train_steps=1, peak_conv=(8, 32))
+    res = run_bench(cfg, log=lambda _: None)
+    json.dumps(res)
+    ok = {(e["method"], e["width"], e["spp"]) for e in res["entries"] if e["status"] == "ok"}
+    assert {("oidn:high", 24, None), ("wskp:small", 24, None), ("layer_optimized:small", 24, 1),
+            ("layer_optimized:small", 24, 8)} <= ok
+    assert ("oidn:high", 40, None) in ok and ("layer_optimized:small", 40, 8) in ok  # a target: kept
+    skipped = {(e["method"], e["spp"]) for e in res["entries"] if e["status"] == "skipped" and e["width"] == 40}
+    assert skipped == {("wskp:small", None), ("layer_optimized:small", 1)}
+    assert all(e["flops_per_pixel"] > 0 for e in res["entries"] if e["status"] == "ok" and e["method"] != "oidn:high"
+               and not e["method"].startswith("oidn"))
+    assert {t["method"] for t in res["training"]} == {"wskp:small", "layer_optimized:small"}
+    assert all(t["crops_per_s"] > 0 for t in res["training"])
+    assert res["peak_conv"]["gflops"] > 0
+
+
+@needs_oidn
+def test_cli_bench_json_out(tmp_path, capsys) -> None:
+    """Bug caught: the command's flags not reaching the run (sizes, models, rounds) or --out not
+    written; an unknown model must be a one-line error, not a traceback."""
+    out = tmp_path / "b.json"
+    rc = main(["bench", "--quick", "--models", "wskp", "--sizes", "24x16", "--spp", "1", "--rounds", "1",
+               "--train-steps", "0", "--json", "--out", str(out)])
+    assert rc == 0
+    printed = json.loads(capsys.readouterr().out)
+    saved = json.loads(out.read_text())
+    assert printed["config"]["methods"] == saved["config"]["methods"] == ["oidn:high", "oidn:fast", "wskp:small"]
+    assert {(e["width"], e["height"]) for e in saved["entries"]} == {(24, 16)}
+    assert main(["bench", "--models", "nosuchmodel"]) == 1
+    assert "unknown model" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+@needs_oidn
+def test_quick_bench_under_two_minutes(tmp_path) -> None:
+    """Bug caught: `--quick` growing past the CI budget of 2 minutes on 2 cores."""
+    import time
+
+    t0 = time.perf_counter()
+    assert main(["bench", "--quick", "--out", str(tmp_path / "q.md")]) == 0
+    assert time.perf_counter() - t0 < 120
+    assert "### 256x256" in (tmp_path / "q.md").read_text()
+
+
+def test_quick_config_is_small() -> None:
+    """Bug caught: quick inheriting the full run's sizes or spp list (then it is not quick)."""
+    q = quick_config()
+    assert q.sizes == ((256, 256),) and q.spp == (1, 8) and q.rounds <= 2
+
+
+def test_from_json_rerenders_docs_block(tmp_path, capsys) -> None:
+    """Bug caught: a saved run that cannot be turned back into the tables (a crash after
+    measuring would lose 15 minutes), or a docs update that overwrites the prose around the block."""
+    saved = tmp_path / "r.json"
+    saved.write_text(json.dumps({**_fake_result(), "command": "mcdenoise bench"}))
+    doc = tmp_path / "PERF.md"
+    doc.write_text("# Perf\n\nprose before\n\n<!-- BEGIN generated:bench:cpu -->\nOLDBLOCK\n<!-- END generated:bench:cpu -->\n\nprose after\n")
+    assert main(["bench", "--from-json", str(saved), "--docs", str(doc)]) == 0
+    text = doc.read_text()
+    assert "prose before" in text and "prose after" in text and "OLDBLOCK" not in text
+    assert "| wskp:paper | - | <= 0.25x | 0.2 |" in text and "Command: `mcdenoise bench`" in text
+    assert "### 1920x1080" in capsys.readouterr().out
