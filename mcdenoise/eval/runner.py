@@ -260,6 +260,7 @@ def evaluate(
     html: bool = True,
     progress: bool = True,
     command: str | None = None,
+    save_images: bool = False,
 ) -> dict[str, Any]:
     """Run the evaluation and write the report folder ``out``; returns what results.json holds.
 
@@ -279,6 +280,8 @@ def evaluate(
         metrics: metric names (default: every metric of :data:`mcdenoise.eval.metrics.METRICS`).
         results_md, section: also write the tables into block ``eval:SECTION`` of this Markdown file.
         html: write index.html and its images.
+        save_images: also write every full-size output as ``images/<image>/<k>spp/<method>.exr``
+            (plus ``reference.exr``), as the demo does.
         progress: a tqdm bar over (image, spp) on stderr.
         command: the command line recorded in the report (default: a Python call).
     """
@@ -306,7 +309,7 @@ def evaluate(
         torch.set_num_threads(threads)
     try:
         doc = _evaluate(models, data_list, out, split, ks, list(oidn), classic, max_images, dev, metric_names,
-                        images, notes, html, progress, command)
+                        images, notes, html, progress, command, save_images)
     finally:
         torch.set_num_threads(old_threads)
     if results_md is not None and section is not None:
@@ -316,10 +319,21 @@ def evaluate(
     return doc
 
 
+def _save_images(folder: Path, k: int, outputs: dict[str, np.ndarray], ref: np.ndarray) -> None:
+    """Full-size outputs as EXRs (``radiance`` layer): ``folder/<k>spp/<method>.exr`` and ``folder/reference.exr``."""
+    from mcdenoise.io.exr import write_exr
+
+    (folder / f"{k}spp").mkdir(parents=True, exist_ok=True)
+    if not (folder / "reference.exr").exists():
+        write_exr(folder / "reference.exr", {"radiance": ref})
+    for name, y in outputs.items():
+        write_exr(folder / f"{k}spp" / f"{name}.exr", {"radiance": y})
+
+
 def _evaluate(models: Sequence[str | os.PathLike], data_list: list[Any], out: Path, split: str, ks: list[int],
               oidn: list[str], classic: bool, max_images: int | None, dev: torch.device, metric_names: list[str],
-              images: list[EvalImage], notes: list[str], html: bool, progress: bool, command: str | None
-              ) -> dict[str, Any]:
+              images: list[EvalImage], notes: list[str], html: bool, progress: bool, command: str | None,
+              save_images: bool = False) -> dict[str, Any]:
     """The evaluation loop and the report folder (arguments checked by :func:`evaluate`)."""
     from tqdm import tqdm
 
@@ -363,6 +377,8 @@ def _evaluate(models: Sequence[str | os.PathLike], data_list: list[Any], out: Pa
                 outputs[m.name] = y
             if crops is not None:
                 crops.add(im.id, k, outputs, ref)
+            if save_images:
+                _save_images(tmp / "images" / im.id, k, outputs, ref)
         bar.close()
         names = [m.name for m in methods]
         doc: dict[str, Any] = {

@@ -145,23 +145,30 @@ def model_card(run_dir: Path, model: Any, info: dict[str, Any], results: dict[st
 def card_markdown(card: dict[str, Any]) -> str:
     """The card as the Markdown block that docs/TRAINING.md shows for one shipped model."""
     t = card["training"]
-    wall = f"{t['wall_s'] / 60:.0f} min" if t.get("wall_s") else "?"
+    wall = f"{t['wall_s'] / 60:.0f} min wall" if t.get("wall_s") else "? wall"
     if t.get("cpu_s"):
-        wall += f" ({t['cpu_s'] / 60:.0f} CPU-min)"
+        wall += f" ({t['cpu_s'] / 60:.0f} CPU-min, loader workers included)"
     lines = [f"**{card['name']}** (`{card['preset']}` preset, {card['parameters']:,} parameters, inputs: "
-             f"{', '.join(card['inputs'])}): {t['steps']} steps, {wall} wall on {t.get('device')} "
+             f"{', '.join(card['inputs'])}): {t['steps']} steps, {wall} on {t.get('device')} "
              f"({t.get('threads') or 'default'} thread(s), {t.get('machine')}; the machine was shared, so wall time "
              "overstates the compute).", "", "```"]
     if card["dataset"].get("command"):
         lines.append(card["dataset"]["command"])
     src = f"runs/{card['name']}" + (f"/checkpoints/step_{t['checkpoint']:08d}" if t.get("checkpoint") else "")
-    lines += [t["command"].split("  # ")[0], f"python -m mcdenoise.models.ship {src} --eval REPORT/results.json --force", "```"]
+    test = card.get("test") or {}
+    lines.append(t["command"].split("  # ")[0])
+    report = "REPORT"
+    if test.get("command"):
+        lines.append(test["command"])
+        argv = shlex.split(test["command"])
+        report = argv[argv.index("--out") + 1] if "--out" in argv else report
+    lines += [f"python -m mcdenoise.models.ship {src} --eval {report}/results.json --force", "```"]
     if t.get("note"):
         lines += ["", f"Shipped: the {t['note']}."]
-    test = card.get("test") or {}
+    data = ", ".join(test.get("data") or []) if isinstance(test.get("data"), list) else test.get("data")
     for subset, per_spp in (test.get("subsets") or {}).items():
         rows = sorted(per_spp.items(), key=lambda kv: int(kv[0]))
-        lines += ["", f"Test relMSE ({subset} images of {test.get('data')}, {test.get('split')} split; "
+        lines += ["", f"Test relMSE ({subset} images of {data}, {test.get('split')} split; "
                       f"OIDN {test.get('oidn_version')} on the same images):", "",
                   "| spp | noisy | this model | improvement | OIDN high | OIDN fast |", "|---|---|---|---|---|---|"]
         for spp, r in rows:
