@@ -8,22 +8,34 @@ from pathlib import Path
 import pytest
 
 from mcdenoise.cli import main as cli
+from mcdenoise.models.weights import shipped
 
 pytestmark = pytest.mark.render
 
+TINY = ["--size", "24", "--spp", "2", "--ref-spp", "32"]
+
 
 def test_demo_tiny_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Bugs caught: a demo that skips the shipped models or OIDN, writes a report without the
+    EXRs/PNGs it promises, reuses a render made with other settings, or re-renders needlessly."""
     out = tmp_path / "demo"
-    rc = cli.main(["demo", "--out", str(out), "--size", "24", "--spp", "2", "--ref-spp", "32"])
-    assert rc == 0
+    assert cli.main(["demo", "--out", str(out), *TINY]) == 0
     text = capsys.readouterr().out
-    assert "not built yet" in text
-    summary = json.loads((out / "summary.json").read_text())
-    noisy = summary["metrics"]["noisy (2 spp)"]
-    assert noisy["relmse"] > 0 and noisy["psnr"] > 5
-    # Every registered model consumed the real buffers and returned a finite full-size image.
-    assert summary["models"] and all(m["ok"] for m in summary["models"].values())
-    assert list(out.glob("noisy_reinhard_ev+0.0.png"))
-    # A second run reuses the render instead of rendering again.
-    assert cli.main(["demo", "--out", str(out), "--size", "24", "--spp", "2", "--ref-spp", "32"]) == 0
+    names = sorted(s.name for s in shipped())
+    assert names, "no shipped weights in the package"
+    doc = json.loads((out / "report" / "results.json").read_text())
+    methods = {m["name"] for m in doc["methods"]}
+    assert set(names) <= methods and {"noisy", "oidn-high", "oidn-fast"} <= methods
+    for name in ["reference", "noisy", "oidn-high", *names]:
+        assert (out / "exr" / f"{name}.exr").is_file(), name
+        pngs = list((out / "png").glob(f"{name}_*.png"))  # the name records tonemap and exposure
+        assert len(pngs) == 1 and pngs[0].stat().st_size > 100, name
+        if name != "reference":
+            assert name in text  # the printed table has a row per method
+    assert (out / "report" / "index.html").is_file() and "report:" in text
+    # Same settings: the render is reused; another seed: rendered again, never reused.
+    assert cli.main(["demo", "--out", str(out), *TINY]) == 0
     assert "reusing" in capsys.readouterr().out
+    assert cli.main(["demo", "--out", str(out), *TINY, "--seed", "3", "--models"]) == 0
+    again = capsys.readouterr().out
+    assert "reusing" not in again and json.loads((out / "render" / "cornell-dof" / "meta.json").read_text())["seed"] == 3
