@@ -20,3 +20,20 @@ class FormatError(McDenoiseError):
 
 class SceneError(McDenoiseError):
     """A scene cannot be loaded or rendered (missing file, unknown plugin, no sensor...)."""
+
+
+class OutputError(McDenoiseError):
+    """An output cannot be written safely: not replaceable, locked, no space, an OS error..."""
+
+    def __init__(self, path: str | os.PathLike, problem: str) -> None:
+        self.path = os.fspath(path)
+        self.problem = problem
+        super().__init__(f"{self.path}: {problem}")
+
+
+class OutputExistsError(OutputError, FileExistsError):
+    """The output already exists and replacing it was not asked for (also a FileExistsError)."""
+
+
+class NonFiniteError(FormatError):
+    """Data holds NaN/Inf where the caller asked to refuse them (``--nonfinite error``)."""

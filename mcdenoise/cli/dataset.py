@@ -15,6 +15,7 @@ Mitsuba's CUDA variant is used where a GPU is present (``--variant`` overrides).
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from pathlib import Path
 
@@ -40,7 +41,7 @@ def parse_split(text: str) -> tuple[float, float, float]:
         parts = tuple(float(x) for x in text.split(","))
     except ValueError:
         parts = ()
-    if len(parts) != 3 or min(parts) < 0 or sum(parts) <= 0:
+    if len(parts) != 3 or not all(math.isfinite(x) for x in parts) or min(parts) < 0 or sum(parts) <= 0:
         raise SceneError(f"--split {text!r}: expected three non-negative fractions train,val,test, e.g. 0.8,0.1,0.1")
     return parts  # type: ignore[return-value]
 
@@ -60,7 +61,7 @@ def parse_objects(text: str) -> tuple[int, int]:
 def add_parser(p: argparse.ArgumentParser) -> None:
     from mcdenoise.cli.render import add_variant_argument
 
-    p.add_argument("--out", type=Path, required=True, help="dataset folder (created; a rerun resumes it)")
+    p.add_argument("--out", type=Path, help="dataset folder (created; a rerun resumes it)")
     p.add_argument("--count", type=int, help="number of scenes to render (required unless --merge)")
     p.add_argument("--spp", type=int, default=8, help="samples per pixel of the per-sample input (default 8)")
     p.add_argument("--ref-spp", type=int, default=1024, help="samples per pixel of the reference; 0 = none (default 1024)")
@@ -77,7 +78,13 @@ def add_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--max-depth", type=int, default=6, help="path depth of input and reference (default 6)")
     p.add_argument("--objects", default="10-50", help="MIN-MAX objects per scene (default 10-50)")
     p.add_argument("--split", default="0.8,0.1,0.1", help="train,val,test fractions of scenes (default 0.8,0.1,0.1)")
-    p.add_argument("--merge", action="store_true", help="only rebuild manifest.json from the image folders in --out")
+    p.add_argument("--merge", action="store_true",
+                   help="only rebuild manifest.json from the image folders in --out (damaged images are left out)")
+    p.add_argument("--verify", type=Path, metavar="DIR",
+                   help="check every image under DIR against its checksums, list the damaged ones (exit 1 if any)")
+    from mcdenoise.cli.render import add_safety_arguments
+
+    add_safety_arguments(p)
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -85,8 +92,27 @@ def run(args: argparse.Namespace) -> int:
     from mcdenoise.cli.render import parse_size
     from mcdenoise.render.procedural_dataset import DatasetConfig, rebuild_manifest, render_dataset
 
+    if args.verify is not None:
+        return _verify(args.verify)
+    if args.out is None:
+        raise SceneError("--out DIR is required (or --verify DIR)")
     if args.merge:
-        path = rebuild_manifest(args.out)
+        from mcdenoise.data.verify import verify_image
+        from mcdenoise.render.procedural_dataset import CONFIG_FILE, finished_paths
+        from mcdenoise.data.format import read_json_document
+
+        cfg_path = args.out / CONFIG_FILE
+        if not cfg_path.is_file():
+            raise SceneError(f"{cfg_path}: no such file (not a procedural dataset folder?)")
+        cfg = DatasetConfig.from_json(read_json_document(cfg_path), cfg_path)
+        done = set()
+        for rel in sorted(finished_paths(args.out, cfg)):
+            problem = verify_image(args.out / rel)
+            if problem is None:
+                done.add(rel)
+            else:
+                print(f"left out of the manifest: {problem}", file=sys.stderr)
+        path = rebuild_manifest(args.out, done)
         from mcdenoise.data.dataset import Dataset
 
         print(repr(Dataset(args.out)))
@@ -99,13 +125,29 @@ def run(args: argparse.Namespace) -> int:
     set_variant(args.variant)
     w, h = parse_size(args.size)
     shard, shards = parse_shard(args.shard)
+    from mcdenoise.cli.render import check_seed, max_bytes
+
+    check_seed(args.seed)
     cfg = DatasetConfig(
         count=args.count, seed=args.seed, spp=args.spp, ref_spp=args.ref_spp, width=w, height=h,
         frames=args.frames, max_depth=args.max_depth, kind=args.kind, fractions=parse_split(args.split),
         objects=parse_objects(args.objects), views=args.views,
     )
     summary = render_dataset(args.out, cfg, shard=shard, shards=shards, progress=not args.no_progress,
-                             log=lambda s: print(s, file=sys.stderr))
+                             log=lambda s: print(s, file=sys.stderr), nonfinite=args.nonfinite, max_bytes=max_bytes(args))
     print(f"rendered {summary['rendered']} image(s) in {summary['seconds']:.1f} s, {summary['skipped']} already done; "
           f"manifest: {summary['manifest']}")
     return 0
+
+
+def _verify(root: Path) -> int:
+    """``--verify DIR``: every image folder under DIR read in full against its checksums."""
+    from mcdenoise.data.verify import verify_tree
+
+    if not root.is_dir():
+        raise SceneError(f"{root}: no such folder")
+    n, problems = verify_tree(root)
+    for line in problems:
+        print(line)
+    print(f"{root}: {n} image(s) checked, {len(problems)} damaged", file=sys.stderr)
+    return 1 if problems else 0

@@ -47,6 +47,8 @@ def _not_landed(name: str) -> int:
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="mcdenoise", description="Neural denoising of Monte Carlo renderings.")
     parser.add_argument("--version", action="version", version=f"mcdenoise {__version__}")
+    parser.add_argument("--debug", action="store_true",
+                        help="show the Python traceback of an error instead of the one-line message")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name, help_ in SUBCOMMANDS.items():
         try:
@@ -77,8 +79,25 @@ def main(argv: list[str] | None = None) -> int:
         print("interrupted", file=sys.stderr)
         return 130
     except McDenoiseError as e:
-        print(f"mcdenoise {args.command}: error: {e}", file=sys.stderr)
+        if args.debug:
+            raise
+        print(f"mcdenoise {args.command}: error: {_one_line(str(e))}", file=sys.stderr)
         return 1
+    except OSError as e:
+        # Operating-system errors the commands did not translate (permissions, full disk, a
+        # path under a plain file...): still one line naming the path and the problem.
+        if args.debug:
+            raise
+        from mcdenoise.io.safety import os_error
+
+        print(f"mcdenoise {args.command}: error: {_one_line(str(os_error(e.filename or '?', e, 'writing or reading')))}",
+              file=sys.stderr)
+        return 1
+
+
+def _one_line(text: str) -> str:
+    """Messages keep to one line on stderr (a multi-line library message is joined)."""
+    return " ".join(part.strip() for part in text.splitlines() if part.strip())
 
 
 if __name__ == "__main__":

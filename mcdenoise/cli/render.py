@@ -70,8 +70,31 @@ def add_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--channels", default=None,
                    help="comma-separated per-sample channels to keep (default: all; radiance always)")
     p.add_argument("--position", action="store_true", help="also store per-pixel world positions in noisy.exr")
-    p.add_argument("--overwrite", action="store_true", help="replace an existing image folder")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace an existing image folder (only one mcdenoise wrote; anything else is refused)")
+    add_safety_arguments(p)
     add_variant_argument(p)
+
+
+def add_safety_arguments(p: argparse.ArgumentParser) -> None:
+    """``--nonfinite`` and ``--max-gb`` (shared with ``mcdenoise dataset``)."""
+    p.add_argument("--nonfinite", choices=("sanitize", "error"), default="sanitize",
+                   help="NaN/Inf samples: sanitize = replace by 0 and warn with the count; error = refuse (default sanitize)")
+    p.add_argument("--max-gb", type=float, default=64.0,
+                   help="refuse output larger than this many GB (free disk space is always checked; default 64)")
+
+
+def check_seed(seed: int, flag: str = "--seed") -> int:
+    """Seeds are 32-bit: a larger one would silently equal another, so it is refused."""
+    if not 0 <= seed < 2**32:
+        raise SceneError(f"{flag} {seed}: must be in [0, {2**32 - 1}] (seeds are 32-bit)")
+    return seed
+
+
+def max_bytes(args: argparse.Namespace) -> int | None:
+    if not args.max_gb > 0:
+        raise SceneError(f"--max-gb {args.max_gb}: must be a positive number of GB")
+    return None if args.max_gb == float("inf") else int(args.max_gb * 1e9)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -87,6 +110,11 @@ def run(args: argparse.Namespace) -> int:
         raise SceneError("no scene given (a Mitsuba 3 XML file or a built-in name; see --list)")
     if args.out is None:
         raise SceneError("--out DIR is required")
+    from mcdenoise.io.safety import check_output_path
+
+    check_seed(args.seed)
+    limit = max_bytes(args)
+    check_output_path(args.out, overwrite=args.overwrite)  # before paying for the scene load
     from mcdenoise.render._mitsuba import set_variant
 
     set_variant(args.variant)
@@ -106,7 +134,8 @@ def run(args: argparse.Namespace) -> int:
     settings.check()
     name = args.scene if args.scene in builtins else Path(args.scene).stem
     out = render_image(scene, args.out, settings, scene_name=name, record_position=args.position,
-                       overwrite=args.overwrite, progress=True, extra_meta={"source": str(args.scene), "defines": defines})
+                       overwrite=args.overwrite, progress=True, extra_meta={"source": str(args.scene), "defines": defines},
+                       nonfinite=args.nonfinite, max_bytes=limit)
     print(f"wrote {out} ({w}x{h}, {settings.spp} spp, reference {settings.ref_spp} spp) "
           f"in {time.perf_counter() - t0:.1f} s", file=sys.stderr)
     return 0

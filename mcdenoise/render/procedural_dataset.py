@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import gc
 import json
+import math
 import re
 import shutil
 import time
@@ -40,7 +41,7 @@ import numpy as np
 
 from mcdenoise.data.format import read_json_document
 from mcdenoise.errors import FormatError, SceneError
-from mcdenoise.io.atomic import atomic_file
+from mcdenoise.io.safety import DEFAULT_MAX_BYTES, WriterLock, atomic_file, check_space
 
 __all__ = [
     "DatasetConfig",
@@ -109,6 +110,8 @@ class DatasetConfig:
             v = getattr(self, name)
             if not isinstance(v, (int, np.integer)) or not lo <= v <= hi:
                 raise SceneError(f"dataset: {name}={v!r} is out of range [{lo}, {hi}]")
+        if not 0 <= int(self.seed) < 2**32:
+            raise SceneError(f"dataset: seed {self.seed} must be in [0, {2**32 - 1}] (seeds are 32-bit)")
         if self.views > 1 and self.frames > 1:
             raise SceneError("dataset: views > 1 and frames > 1 cannot be combined (a sequence is one view)")
         if self.generator != GENERATOR:
@@ -120,7 +123,7 @@ class DatasetConfig:
         if not 1 <= lo <= hi <= 1000:
             raise SceneError(f"dataset: objects {lo}-{hi} must satisfy 1 <= min <= max <= 1000")
         fr = tuple(float(f) for f in self.fractions)
-        if len(fr) != 3 or min(fr) < 0 or sum(fr) <= 0:
+        if len(fr) != 3 or not all(math.isfinite(f) for f in fr) or min(fr) < 0 or sum(fr) <= 0:
             raise SceneError(f"dataset: split fractions {self.fractions} must be three non-negative numbers")
 
     def to_json(self) -> dict[str, Any]:
@@ -188,7 +191,13 @@ def _write_config(root: Path, cfg: DatasetConfig) -> None:
 
 
 def _is_finished(folder: Path) -> bool:
-    return (folder / "meta.json").is_file()
+    """A complete, undamaged-looking image: meta.json present and the folder opens (sizes, headers;
+    a truncated samples.bin is not finished). Full checksums: :func:`mcdenoise.data.verify.verify_image`."""
+    if not (folder / "meta.json").is_file():
+        return False
+    from mcdenoise.data.verify import verify_image
+
+    return verify_image(folder, full=False) is None
 
 
 def finished_paths(root: Path, cfg: DatasetConfig) -> set[str]:
@@ -298,11 +307,13 @@ def render_procedural_image(
     todo: list[str],
     *,
     on_image: Callable[[str], None] | None = None,
+    **write_opts: Any,
 ) -> None:
     """Draw scene ``index`` and render its frames or views listed in ``todo`` (relative paths).
 
     The scene is loaded once (by :func:`~mcdenoise.render.procedural.generate`, which checks it
     with the input's own settings); all views, frames and references render from that object.
+    ``write_opts`` (``nonfinite``, ``max_bytes``) go to :func:`~mcdenoise.render.render_image`.
     """
     from mcdenoise.render import render_image
     from mcdenoise.render.procedural import derive_seed, generate
@@ -355,7 +366,8 @@ def render_procedural_image(
             extra = {**view_meta, "camera_to_world": c2w.tolist()}
             if settings.object_motion:
                 extra["ref_time_slices"] = min(settings.ref_time_slices, settings.ref_spp)
-            render_image(scene, root / rel, settings, scene_name=name, extra_meta=extra)
+            # overwrite: only a damaged leftover of ours can be there (finished images are not todo).
+            render_image(scene, root / rel, settings, scene_name=name, extra_meta=extra, overwrite=True, **write_opts)
             if on_image is not None:
                 on_image(rel)
         return
@@ -382,7 +394,7 @@ def render_procedural_image(
         # camera_to_world (a literal): every frame then reuses the first frame's kernels.
         set_camera(scene, path[f])
         render_image(scene, root / rel, settings, scene_name=name, extra_meta=frame_meta,
-                     record_position=True, extra_noisy={"motion": motion})
+                     record_position=True, extra_noisy={"motion": motion}, overwrite=True, **write_opts)
         if on_image is not None:
             on_image(rel)
 
@@ -395,20 +407,49 @@ def render_dataset(
     shards: int = 1,
     progress: bool = True,
     log: Callable[[str], None] | None = None,
+    nonfinite: str = "sanitize",
+    max_bytes: int | None = DEFAULT_MAX_BYTES,
 ) -> dict[str, Any]:
     """Render the missing images of shard ``shard/shards`` into ``root``; returns a summary.
 
     Rebuilds the manifest after each image and at the end (from a fresh scan, which picks up
     folders other shards wrote meanwhile).
     """
-    from tqdm import tqdm
-
     root = Path(root)
     cfg.check()
     if root.exists() and not root.is_dir():
         raise SceneError(f"{root}: exists and is not a folder")
-    _write_config(root, cfg)
     indices = shard_indices(cfg.count, shard, shards)
+    # One writer per shard of a folder: a second run of the same (or an overlapping) shard is
+    # refused; disjoint shards may share the folder. Taken before dataset.json is written.
+    lock = WriterLock(root / f".lock.shard-{shard}-of-{shards}", f"shard {shard}/{shards}",
+                      pattern=".lock.shard-*", conflicts=lambda doc: _shards_overlap(doc, shard, shards))
+    with lock:
+        return _render_dataset_locked(root, cfg, indices, shard=shard, shards=shards, progress=progress, log=log,
+                                      nonfinite=nonfinite, max_bytes=max_bytes)
+
+
+def _shards_overlap(doc: dict[str, Any], shard: int, shards: int) -> bool:
+    """Whether another lock's shard ``i/n`` shares an index with ``shard/shards`` (i = shard mod
+    gcd(n, shards) has a solution by the Chinese remainder theorem); unknown holders overlap."""
+    m = re.match(r"^shard (\d+)/(\d+)$", str(doc.get("what", "")))
+    if not m:
+        return True
+    i, n = int(m.group(1)), int(m.group(2))
+    return (i - shard) % math.gcd(n, shards) == 0
+
+
+def _render_dataset_locked(root: Path, cfg: DatasetConfig, indices: list[int], *, shard: int, shards: int,
+                           progress: bool, log: Callable[[str], None] | None, nonfinite: str,
+                           max_bytes: int | None) -> dict[str, Any]:
+    from tqdm import tqdm
+
+    from mcdenoise.data.format import ImageMeta
+    from mcdenoise.data.samples_header import _samples_header
+    from mcdenoise.data.writer import estimate_exr_bytes
+    from mcdenoise.render import SAMPLE_CHANNELS
+
+    _write_config(root, cfg)
     removed = clean_partial(root, indices)
     done = finished_paths(root, cfg)
     todo = {i: [p for p in image_paths(cfg, i) if p not in done] for i in indices}
@@ -418,6 +459,9 @@ def render_dataset(
     if log is not None:
         log(f"{root}: shard {shard}/{shards}: {total} image(s) to render, {skipped} already done"
             + (f", removed {len(removed)} partial leftover(s)" if removed else ""))
+    probe = ImageMeta(width=cfg.width, height=cfg.height, spp=cfg.spp, channels=list(SAMPLE_CHANNELS))
+    per_image = _samples_header(probe, 32, "auto")[1] + estimate_exr_bytes(probe)
+    check_space(root, per_image * total, max_bytes=max_bytes, what=f"{total} image(s) of {cfg.width}x{cfg.height} at {cfg.spp} spp")
     t0 = time.perf_counter()
     bar = tqdm(total=total, unit="img", disable=not progress, dynamic_ncols=True)
 
@@ -428,7 +472,7 @@ def render_dataset(
 
     try:
         for i, rels in todo.items():
-            render_procedural_image(cfg, root, i, rels, on_image=finished)
+            render_procedural_image(cfg, root, i, rels, on_image=finished, nonfinite=nonfinite, max_bytes=max_bytes)
             # The scene's Mitsuba objects must die before the next scene compiles: Dr.Jit's
             # virtual calls cover every live BSDF of the process.
             gc.collect()

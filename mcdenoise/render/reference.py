@@ -1,0 +1,75 @@
+"""The converged reference image (radiance, diffuse, specular, albedo), with seeds independent
+of the per-sample input's."""
+
+from __future__ import annotations
+
+from typing import Any, Callable
+
+import numpy as np
+
+from mcdenoise.errors import SceneError
+from mcdenoise.render.integrator import LEVEL_REFERENCE
+from mcdenoise.render.motion import _pose_objects, _slice_times
+from mcdenoise.render.prepare import _prepare, _restore
+from mcdenoise.render.settings import REFERENCE_CHANNELS, RenderSettings, derive_seed
+from mcdenoise.render.trace import _row_bands, _trace_chunk
+
+__all__ = ["render_reference"]
+
+
+def render_reference(
+    scene: Any,
+    settings: RenderSettings,
+    *,
+    seed: int | None = None,
+    camera_to_world: np.ndarray | None = None,
+    spp: int | None = None,
+    progress: Callable[[int], None] | None = None,
+) -> dict[str, np.ndarray]:
+    """Reference image: name -> (C, H, W) float32 for radiance, diffuse, specular, albedo.
+
+    ``progress`` is called with the number of camera samples traced after each chunk.
+
+    Seeds are derived from ``seed`` under a key the per-sample input never uses, so reference and
+    input noise are independent. Object motion is resolved with ``spp`` stratified time slices.
+    """
+    seed = settings.seed if seed is None else int(seed)
+    spp = settings.ref_spp if spp is None else int(spp)
+    if spp < 1:
+        raise SceneError(f"render settings: reference spp={spp} must be >= 1")
+    prep = _prepare(scene, settings, camera_to_world)
+    W, H = settings.width, settings.height
+    sums: dict[str, np.ndarray] = {}
+    try:
+        if settings.object_motion:
+            # One slice per pass; slices stratify the shutter, so the reference converges to the
+            # motion-blurred image like the input does.
+            n_slices = min(spp, settings.ref_time_slices)
+            per = [spp // n_slices + (1 if i < spp % n_slices else 0) for i in range(n_slices)]
+            times = _slice_times(derive_seed(seed, 3), n_slices)
+            passes = [(float(t), k, i) for i, (t, k) in enumerate(zip(times, per))]
+        else:
+            per_pass = max(1, min(spp, settings.chunk_samples // max(1, W * H)))
+            passes = []
+            left, i = spp, 0
+            while left > 0:
+                k = min(per_pass, left)
+                passes.append((None, k, i))
+                left -= k
+                i += 1
+        for t, k, i in passes:
+            if t is not None:
+                _pose_objects(prep, t)
+            bands = _row_bands(W, H, k, settings.chunk_samples)
+            for b, rows in enumerate(bands):
+                out = _trace_chunk(scene, prep, rows=rows, spp=k, seed=derive_seed(seed, 4, i, b), level=LEVEL_REFERENCE,
+                                   time_override=t, record_position=False, reduce=True)
+                for name, v in out.items():
+                    if name not in sums:
+                        sums[name] = np.zeros((v.shape[0], H, W), dtype=np.float64)
+                    sums[name][:, rows] += v
+                if progress is not None:
+                    progress(k * (rows.stop - rows.start) * W)
+    finally:
+        _restore(scene, prep)
+    return {k: (sums[k] / spp).astype(np.float32) for k in REFERENCE_CHANNELS}
