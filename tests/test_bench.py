@@ -50,6 +50,10 @@ def test_parse_method_and_priority() -> None:
     assert priority(parse_method("oidn:fast"), None) == 0
     assert priority(parse_method("sbmc:small"), 8) == 0 and priority(parse_method("sbmc:small"), 32) == 2
     assert priority(parse_method("wskp:paper"), None) == 0 and priority(parse_method("dpcn"), None) == 1
+    # Targets are kept at the target size only; WSKP's paper presets also at the paper's 720p.
+    assert priority(parse_method("sbmc:small"), 8, (1280, 720)) == 1
+    assert priority(parse_method("sbmc:small"), 8, (1920, 1080)) == 0
+    assert priority(parse_method("wskp:paper3"), None, (1280, 720)) == 0
 
 
 def _fake_result() -> dict:
@@ -87,7 +91,7 @@ def test_run_bench_reduced_set_and_budget() -> None:
 
     methods = [parse_method(t) for t in ("oidn:high", "oidn:fast", "wskp:small", "layer_optimized:small")]
     cfg = BenchConfig(methods=methods, sizes=((24, 24), (40, 32)), spp=(1, 8), rounds=1, budget_s=0.0,
-                      train_batch=2, train_crop=16, train_steps=1, peak_conv=(8, 32))
+                      train_batch=2, train_crop=16, train_steps=1, peak_conv=(8, 32), target_size=(40, 32))
     res = run_bench(cfg, log=lambda _: None)
     json.dumps(res)
     ok = {(e["method"], e["width"], e["spp"]) for e in res["entries"] if e["status"] == "ok"}

@@ -90,9 +90,11 @@ class BenchConfig:
     """Untimed calls per entry before timing (the first one also measures peak memory)."""
     rounds: int = 3
     """Timed rounds; each entry's figure is the median over rounds."""
-    budget_s: float = 480.0
+    budget_s: float = 300.0
     """Estimated seconds of timed work allowed for the sizes after the first (OIDN and targets
-    run whatever their estimate)."""
+    run whatever their estimate, and their estimate counts against it)."""
+    target_size: tuple[int, int] = (1920, 1080)
+    """Size at which the issue's target entries always run (elsewhere they share the budget)."""
     memory_fraction: float = 0.4
     """Skip an entry whose inputs would exceed this fraction of the available memory."""
     device: str = "cpu"
@@ -125,11 +127,19 @@ def full_config(**overrides: object) -> BenchConfig:
     return cfg
 
 
-def priority(method: Method, spp: int | None) -> int:
-    """Lower runs first and is never dropped for time when 0: OIDN and the issue's targets."""
+#: Entries always run at 1280x720 too: WSKP's paper times 720p (Table 3).
+PAPER_720P: tuple[str, ...] = ("wskp:paper", "wskp:paper3")
+
+
+def priority(method: Method, spp: int | None, size: tuple[int, int] | None = None,
+             target_size: tuple[int, int] = (1920, 1080)) -> int:
+    """Lower runs first and is never dropped for time when 0: OIDN at every size, the issue's
+    targets at ``target_size`` (or at any size when ``size`` is None), WSKP's paper presets at 720p."""
     if method.is_oidn:
         return 0
-    if any(method.label == t and (s is None or s == spp) for t, s, _ in TARGETS):
+    if (size is None or size == target_size) and any(method.label == t and (s is None or s == spp) for t, s, _ in TARGETS):
+        return 0
+    if size == (1280, 720) and method.label in PAPER_720P:
         return 0
     if spp is None or spp == ANCHOR_SPP:
         return 1

@@ -182,7 +182,7 @@ class _Runner:
         keyed = []
         for m, s in cands:
             est = self._estimate(m.label, s, w * h)
-            keyed.append((priority(m, s), est if est is not None else float("inf"), m, s))
+            keyed.append((priority(m, s, (w, h), cfg.target_size), est if est is not None else float("inf"), m, s))
         keyed.sort(key=lambda t: (t[0], t[1]))
         chosen, spent = [], 0.0
         for prio, est, m, s in keyed:

@@ -42,7 +42,7 @@ def add_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--sizes", nargs="+", type=_size, metavar="WxH", help="image sizes (default 256x256 1280x720 1920x1080)")
     p.add_argument("--spp", nargs="+", type=int, help="spp for sample models (default 1 4 8 16 32)")
     p.add_argument("--rounds", type=int, help="timed rounds (default 3; quick 2)")
-    p.add_argument("--budget", type=float, help="estimated seconds for the sizes after the first (default 480)")
+    p.add_argument("--budget", type=float, help="estimated seconds for the sizes after the first (default 300)")
     p.add_argument("--train-steps", type=int, help="timed training steps per model (default 3; 0 = no training figure)")
     p.add_argument("--threads", type=int, help="torch threads (default: torch's)")
     p.add_argument("--reference", action="store_true", help="time the reference paths (no RepVGG folding, no_grad)")
