@@ -85,13 +85,19 @@ def test_measured_receptive_field_is_tight():
 
 def test_pooling_alignment_matters():
     """Catches tiles cut off the pooling grid: wskp_mr with cores not a multiple of 4 must seam."""
-    torch.manual_seed(0)
+    from mcdenoise.infer.receptive import _all_paths_open
+
     model = build_model("wskp_mr", "small").eval()
-    batch = synthetic_batch(model, height=H, width=W)
+    _all_paths_open(model)  # random signed weights can switch the coarse levels off (then nothing seams)
+    h, w = 2 * H, 2 * W  # room for several tiles with a 30 px overlap
+    batch = synthetic_batch(model, height=h, width=w)
     with torch.no_grad():
         whole = model(batch)[0].numpy()
     rf = receptive_field(model) + 8
-    misaligned = _run(model, batch, plan_tiles(H, W, receptive=rf, align=1, core=13))
+    assert len(plan_tiles(h, w, receptive=rf, align=1, core=13)) >= 4
+    aligned = _run(model, batch, plan_tiles(h, w, receptive=rf, align=4, core=12))
+    assert _rel(aligned, whole) < 1e-4  # the issue's tolerance; positive weights make large sums
+    misaligned = _run(model, batch, plan_tiles(h, w, receptive=rf, align=1, core=13))
     assert _rel(misaligned, whole) > 1e-3
 
 
@@ -120,3 +126,15 @@ def test_budget_sets_the_tile_size():
     assert len(plan_tiles(500, 400, receptive=10, max_window_pixels=500 * 400)) == 1
     plan = plan_tiles(500, 400, receptive=10, align=4, max_window_pixels=100 * 100)
     assert plan.window ** 2 <= 100 * 100 and len(plan) > 1
+
+
+def test_receptive_field_does_not_depend_on_the_global_rng():
+    """Catches a measurement that follows random weights: with signed random weights the 3-channel
+    probe of wskp_mr measured 22 px or 8 px depending on the RNG state, and 8 px of overlap seams."""
+    from mcdenoise.infer.receptive import measure_receptive_field
+
+    found = set()
+    for seed in (0, 1, 2):
+        torch.manual_seed(seed)
+        found.add(measure_receptive_field(build_model("wskp_mr", "small")))
+    assert found == {PINNED["wskp_mr"][0]}

@@ -101,6 +101,24 @@ def _support_radius(model: Denoiser, size: int, block: int, spp: int) -> int:
     return max(y0 - lo, hi - (y0 + block - 1))
 
 
+def _all_paths_open(probe: torch.nn.Module) -> None:
+    """Give the thin probe small positive weights, zero-mean unit-variance BatchNorm statistics.
+
+    With random signed weights a 3-channel probe can have every ReLU on some path switched off,
+    and the gradient then stops short of the true receptive field (it depended on the global RNG:
+    wskp_mr measured 22 or 8 px). Positive weights on positive synthetic inputs keep each ReLU
+    active, so the measured support is the architecture's, whatever the trained weights are.
+    """
+    g = torch.Generator().manual_seed(0)
+    with torch.no_grad():
+        for p in probe.parameters():
+            p.copy_(torch.rand(p.shape, generator=g, dtype=p.dtype) * 0.04 + 0.01)
+        for mod in probe.modules():
+            if isinstance(mod, torch.nn.modules.batchnorm._BatchNorm) and mod.running_mean is not None:
+                mod.running_mean.zero_()
+                mod.running_var.fill_(1.0)
+
+
 def measure_receptive_field(model: Denoiser, *, thin: bool = True, start: int = 48, limit: int = 4096) -> int:
     """Measure the receptive field radius of ``model`` in pixels (see the module docstring).
 
@@ -114,6 +132,8 @@ def measure_receptive_field(model: Denoiser, *, thin: bool = True, start: int = 
         except (ValueError, TypeError):
             probe = model  # a config whose widths cannot shrink: measure the real thing
     probe = probe.eval()  # BatchNorm must use running statistics, not the probe's batch
+    if probe is not model:
+        _all_paths_open(probe)
     m = alignment(probe)
     spp = 1  # the receptive field does not depend on the sample count
     size = math.ceil(start / m) * m
