@@ -50,3 +50,12 @@ def test_unknown_model_is_refused(capsys: pytest.CaptureFixture[str]) -> None:
     assert cli.main(["models", "--model", "wskpp", "--no-flops"]) == 2
     err = capsys.readouterr().err
     assert "wskpp" in err and "wskp_mr" in err
+
+
+def test_unknown_preset_is_refused(capsys: pytest.CaptureFixture[str]) -> None:
+    """Bug caught: `models --preset bogus` printing every model with no preset rows and exit 0."""
+    from mcdenoise.cli.main import main
+
+    assert main(["models", "--preset", "bogus", "--no-flops"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "no model has preset(s) bogus" in err and "small" in err and "\n" not in err

@@ -32,6 +32,13 @@ def run(args: argparse.Namespace) -> int:
                   f"registered: {', '.join(e.name for e in entries)}", file=sys.stderr)
             return 2
         entries = [e for e in entries if e.name in args.model]
+    if args.preset:
+        known = {p for e in entries for p in e.presets}
+        bogus = sorted(set(args.preset) - known)
+        if bogus:
+            print(f"mcdenoise models: no {'selected ' if args.model else ''}model has preset(s) {', '.join(bogus)}; "
+                  f"presets: {', '.join(sorted(known))}", file=sys.stderr)
+            return 2
     rows = [describe(e, args.preset, not args.no_flops) for e in entries]
     if args.json:
         json.dump(rows, sys.stdout, indent=2)
