@@ -163,14 +163,18 @@ class ModelMethod(Method):
     kind = "model"
 
     def __init__(self, name: str, model: torch.nn.Module, load_info: dict[str, Any], device: torch.device | str) -> None:
+        from mcdenoise.models.inference import prepare_inference
+
         super().__init__(name)
-        self.model = model
+        self.parameters = sum(p.numel() for p in model.parameters())  # the trained form's, before folding
+        # The inference form that bench times and denoise runs (WSKP's RepVGG blocks folded).
+        self.model = prepare_inference(model, fast=True)
         self.load_info = load_info
         self.device = torch.device(device)
 
     @property
     def info(self) -> dict[str, Any]:
-        params = sum(p.numel() for p in self.model.parameters())
+        params = self.parameters
         # load_info's "name" is the registered model; here "name" is this method's table label.
         loaded = {k: v for k, v in self.load_info.items() if k not in ("name", "label")}
         return {**super().info, "model": self.load_info.get("name"), "input_kind": self.model.input_kind,

@@ -131,4 +131,7 @@ def choose_model(inputs: Inputs, spec: str | None = None, *, device: torch.devic
         info["why"] = (f"lowest test relMSE ({score:.4g}) among shipped models whose inputs are present"
                        if score is not None else "first in the fixed order among shipped models whose inputs are present")
     info["channels"] = [c for c in model.required_channels() if c != "scene_features"]
-    return model, info
+    from mcdenoise.models.inference import prepare_inference
+
+    # Weights are loaded: fold WSKP's RepVGG branches (parity-tested in tests/test_fast_paths.py).
+    return prepare_inference(model, fast=True), info
