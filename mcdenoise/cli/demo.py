@@ -117,6 +117,11 @@ def run(args: argparse.Namespace) -> int:
         shutil.copyfile(src, exr_dir / src.name)
         write_preview(png_dir / f"{name}.png", read_exr(src)["radiance"], tonemap="reinhard")
     _say(_table(doc, args.spp))
+    rows = {r["method"]: r["relmse"] for r in doc["summary"] if r["subset"] == "all" and r["spp"] == args.spp}
+    worse = [m for m in models if m in rows and "noisy" in rows and rows[m] > rows["noisy"]]
+    if worse:
+        _say(f"note: {', '.join(worse)} end up worse than the noisy input here: their kernels blur the visible "
+             "light onto the dark ceiling, and those pixels dominate relMSE (docs/RESULTS.md)")
     _say(f"report: {report / 'index.html'}")
     _say(f"EXRs:   {exr_dir}/  PNGs: {png_dir}/  (tonemapped with Reinhard)")
     _say(f"done in {time.perf_counter() - t_start:.0f} s")
