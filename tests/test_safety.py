@@ -317,3 +317,16 @@ def test_concurrent_render_into_one_output_is_refused(tmp_path: Path, capsys) ->
                      "--out", str(tmp_path / "img")]) == 1
     _one_error_line(capsys, str(tmp_path), "another mcdenoise run is writing here")
     assert sorted(p.name for p in tmp_path.iterdir()) == []
+
+
+def test_repro_and_demo_bad_arguments_are_one_line(tmp_path: Path, capsys) -> None:
+    """Bugs: `repro --out` naming a plain file ended in a traceback; `demo --size 5` rendered a
+    useless 5x5 image (issue 13 item 6)."""
+    plain = tmp_path / "plain"
+    plain.write_text("x")
+    assert main(["repro", "wskp-fig9", "--out", str(plain), "--steps", "1", "--quiet"]) == 1
+    _one_error_line(capsys, str(plain), "plain file")
+    assert plain.read_text() == "x"
+    assert main(["demo", "--size", "5", "--out", str(tmp_path / "d")]) == 1
+    _one_error_line(capsys, "--size 5")
+    assert not (tmp_path / "d").exists()
