@@ -22,6 +22,7 @@ import argparse
 import json
 import os
 import resource
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -128,7 +129,12 @@ def main() -> int:
             if c != "scene_features" and c not in channels:
                 channels.append(c)
     folder = work / f"img_{width}x{height}_{args.spp}spp"
-    if not (folder / "meta.json").exists():
+    have: list[str] = []
+    if (folder / "meta.json").exists():
+        have = json.loads((folder / "meta.json").read_text()).get("channels", [])
+    if not set(channels) <= set(have):  # a folder written for other models lacks channels: write it again
+        if folder.exists():
+            shutil.rmtree(folder)
         t = time.perf_counter()
         _write_folder(folder, width, height, args.spp, channels)
         print(f"wrote {folder} in {time.perf_counter() - t:.0f} s", flush=True)
@@ -146,6 +152,10 @@ def main() -> int:
             print(f"  {name:16s} failed: {res.stderr.strip().splitlines()[-1:] or res.returncode}")
             continue
         plan = next((ln for ln in lines if ln.startswith("ran ")), "")
+        if res.returncode != 0 or not plan:  # the child caught the error and still printed its peak
+            err = res.stderr.strip().splitlines()[-1:] or [f"exit {res.returncode}"]
+            print(f"  {name:16s} failed: {err[0]}", flush=True)
+            continue
         print(f"  {name:16s} peak {doc['peak'] / 2**30:5.2f} GiB  {'<' if doc['peak'] < TARGET else '>='} 8 GB  "
               f"{doc['seconds']:6.0f} s  {plan}", flush=True)
     return 0
