@@ -37,11 +37,9 @@ GB = 1 << 30
 
 
 def _rss_bytes(field: str) -> int:
-    with open("/proc/self/status") as f:
-        for line in f:
-            if line.startswith(field + ":"):
-                return int(line.split()[1]) * 1024
-    raise RuntimeError(f"{field} not in /proc/self/status")
+    from mcdenoise.bench.memory import status_kib
+
+    return status_kib(field) * 1024
 
 
 def child(args: argparse.Namespace) -> None:

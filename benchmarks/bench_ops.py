@@ -47,15 +47,9 @@ from mcdenoise.ops import (  # noqa: E402
     splat,
 )
 
+from mcdenoise.bench.memory import status_kib  # noqa: E402
+
 MB = 1024.0 * 1024.0
-
-
-def _status_kb(field: str) -> int:
-    with open("/proc/self/status") as f:
-        for line in f:
-            if line.startswith(field + ":"):
-                return int(line.split()[1])
-    raise RuntimeError(f"{field} not in /proc/self/status")
 
 
 def peak_extra_mb(fn: Callable[[], object], device: torch.device) -> float:
@@ -70,11 +64,11 @@ def peak_extra_mb(fn: Callable[[], object], device: torch.device) -> float:
         peak = torch.cuda.max_memory_allocated(device)
         del out
         return (peak - base) / MB
-    base = _status_kb("VmRSS")
+    base = status_kib("VmRSS")
     with open("/proc/self/clear_refs", "w") as f:
         f.write("5")  # resets VmHWM to the current RSS
     out = fn()
-    peak = _status_kb("VmHWM")
+    peak = status_kib("VmHWM")
     del out
     gc.collect()
     return (peak - base) / 1024.0

@@ -19,21 +19,9 @@ from torch import nn
 from mcdenoise.models.inference import denoise_batch, inference_context, prepare_inference
 from mcdenoise.models.registry import build_model, list_models, synthetic_batch
 
+from test_model_wskp import _randomise_bn  # noqa: E402  (one copy of the BN randomiser)
+
 ALL = [e.name for e in list_models()]
-
-
-def _randomise_bn(model: nn.Module, seed: int = 0) -> None:
-    """Non-trivial BatchNorm statistics: with the defaults (mean 0, var 1) a wrong fold of the
-    running statistics would still pass."""
-    g = torch.Generator().manual_seed(seed)
-    for m in model.modules():
-        if isinstance(m, nn.BatchNorm2d):
-            with torch.no_grad():
-                n = m.num_features
-                m.weight.copy_(0.5 + torch.rand(n, generator=g))
-                m.bias.copy_(torch.randn(n, generator=g) * 0.1)
-                m.running_mean.copy_(torch.randn(n, generator=g) * 0.1)
-                m.running_var.copy_(0.5 + torch.rand(n, generator=g))
 
 
 def _pair(name: str, preset: str = "small", dtype: torch.dtype = torch.float64) -> tuple[nn.Module, nn.Module, dict]:

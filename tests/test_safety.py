@@ -4,10 +4,12 @@ user's deleted, no temporary folders left behind."""
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import json
 import os
 import subprocess
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -33,6 +35,18 @@ def _image(folder: Path, spp: int = 4, h: int = 40, w: int = 50, **kw) -> dict[s
 
 def _no_temps(folder: Path) -> list[str]:
     return [p.name for p in folder.iterdir() if ".tmp-" in p.name or ".old-" in p.name]
+
+
+@contextlib.contextmanager
+def _tmpfs(mnt: Path, options: str) -> Iterator[Path]:
+    """A small tmpfs mounted at ``mnt`` for the block (skips the test where mounting is not allowed)."""
+    mnt.mkdir()
+    if subprocess.run(["mount", "-t", "tmpfs", "-o", options, "tmpfs", str(mnt)], capture_output=True).returncode:
+        pytest.skip(f"cannot mount a tmpfs ({options}) here (not root?)")
+    try:
+        yield mnt
+    finally:
+        subprocess.run(["umount", str(mnt)], check=False)
 
 
 def _one_error_line(capsys: pytest.CaptureFixture, *needles: str) -> str:
@@ -101,17 +115,11 @@ def test_disk_full_while_allocating_is_one_line_and_leaves_no_temp(tmp_path: Pat
 
 def test_disk_full_on_a_real_tmpfs(tmp_path: Path, monkeypatch) -> None:
     """The same on a real 2 MB tmpfs (space pre-check bypassed so the write itself fills it)."""
-    mnt = tmp_path / "small"
-    mnt.mkdir()
-    if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=2m", "tmpfs", str(mnt)], capture_output=True).returncode:
-        pytest.skip("cannot mount a tmpfs here (not root?)")
-    try:
+    with _tmpfs(tmp_path / "small", "size=2m") as mnt:
         monkeypatch.setattr("mcdenoise.data.writer.check_space", lambda *a, **k: None)
         with pytest.raises(OutputError, match="the disk is full"):
             _image(mnt / "img", spp=64, h=128, w=128)
         assert list(mnt.iterdir()) == []
-    finally:
-        subprocess.run(["umount", str(mnt)], check=False)
 
 
 def test_stale_temp_of_a_killed_writer_is_removed(tmp_path: Path) -> None:
@@ -298,16 +306,10 @@ def test_meta_json_with_null_fields_is_one_line(tmp_path: Path) -> None:
 
 def test_read_only_output_is_one_line(tmp_path: Path, capsys) -> None:
     """Bug: a read-only output place ended in a PermissionError/OSError traceback."""
-    mnt = tmp_path / "ro"
-    mnt.mkdir()
-    if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=1m,ro", "tmpfs", str(mnt)], capture_output=True).returncode:
-        pytest.skip("cannot mount a read-only tmpfs here (not root?)")
-    try:
+    with _tmpfs(tmp_path / "ro", "size=1m,ro") as mnt:
         assert main(["render", "cornell-box", "--spp", "1", "--ref-spp", "0", "--size", "16",
                      "--out", str(mnt / "img")]) == 1
         _one_error_line(capsys, str(mnt), "read-only")
-    finally:
-        subprocess.run(["umount", str(mnt)], check=False)
 
 
 def test_concurrent_render_into_one_output_is_refused(tmp_path: Path, capsys) -> None:

@@ -36,7 +36,8 @@ def _libc() -> Any:
         return None
 
 
-def _status_kib(field: str) -> int:
+def status_kib(field: str) -> int:
+    """A ``/proc/self/status`` field in KiB (``VmRSS``, ``VmHWM``); OSError where there is none."""
     with open("/proc/self/status") as f:
         for line in f:
             if line.startswith(field + ":"):
@@ -61,7 +62,7 @@ def _reset_cpu_peak() -> bool:
 def cpu_peak_supported() -> bool:
     """True when the per-call CPU peak can be measured here."""
     try:
-        _status_kib("VmHWM")
+        status_kib("VmHWM")
     except OSError:
         return False
     return _reset_cpu_peak()
@@ -83,7 +84,7 @@ def peak_call_memory(fn: Callable[[], Any], device: str = "cpu") -> tuple[Any, i
         return out, int(torch.cuda.max_memory_allocated() - before)
     if not cpu_peak_supported() or not _reset_cpu_peak():
         return fn(), None
-    before = _status_kib("VmRSS")
+    before = status_kib("VmRSS")
     out = fn()
-    peak = _status_kib("VmHWM")
+    peak = status_kib("VmHWM")
     return out, max(0, peak - before) * 1024
