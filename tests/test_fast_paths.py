@@ -85,3 +85,45 @@ def test_prepare_inference_default_channels_last_cpu_off() -> None:
     model = prepare_inference(build_model("kpcn", "small"))
     conv = next(m for m in model.modules() if isinstance(m, nn.Conv2d) and m.kernel_size != (1, 1))
     assert conv.weight.is_contiguous()
+
+
+# -- PointwiseConv: the 1x1 convolution as a batched matrix product (models/blocks.py) --------
+
+
+@pytest.mark.parametrize("bias", [True, False])
+def test_pointwise_conv_equals_conv2d_float64(bias: bool) -> None:
+    """Bug caught: a transposed weight view, the bias added on the wrong axis, or samples mixed
+    by the (N, C, H*W) reshape (N > 1 and non-square H x W make each of those visible)."""
+    from mcdenoise.models.blocks import PointwiseConv
+
+    torch.manual_seed(0)
+    conv = PointwiseConv(5, 7, bias=bias).double()
+    with torch.no_grad():
+        if bias:
+            conv.bias.normal_()
+    x = torch.randn(3, 5, 4, 6, dtype=torch.float64)
+    torch.testing.assert_close(conv(x), torch.nn.functional.conv2d(x, conv.weight, conv.bias), rtol=1e-12, atol=1e-12)
+    # Non-contiguous input (a channel slice, channels_last) takes the same path.
+    xl = torch.randn(3, 9, 4, 6, dtype=torch.float64)[:, 2:7]
+    torch.testing.assert_close(conv(xl), torch.nn.functional.conv2d(xl, conv.weight, conv.bias), rtol=1e-12, atol=1e-12)
+    xc = x.contiguous(memory_format=torch.channels_last)
+    torch.testing.assert_close(conv(xc), torch.nn.functional.conv2d(x, conv.weight, conv.bias), rtol=1e-12, atol=1e-12)
+
+
+def test_pointwise_conv_gradcheck_and_state_dict() -> None:
+    """Bug caught: a forward whose gradients differ from its values' (an expand without the sum
+    over the batch in the weight gradient), or a module whose state dict no longer loads
+    weights trained with nn.Conv2d (the shipped weights)."""
+    from mcdenoise.models.blocks import PointwiseConv
+
+    torch.manual_seed(0)
+    conv = PointwiseConv(3, 2).double()
+    x = torch.randn(2, 3, 3, 2, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda a, w, b: torch.nn.functional.conv2d(a, w, b), (x, conv.weight, conv.bias))
+    assert torch.autograd.gradcheck(lambda a: conv(a), (x,))
+    params = (conv.weight.detach().clone().requires_grad_(), conv.bias.detach().clone().requires_grad_())
+    assert torch.autograd.gradcheck(
+        lambda wt, b: torch.func.functional_call(conv, {"weight": wt, "bias": b}, (x.detach(),)), params)
+    plain = nn.Conv2d(3, 2, 1)
+    conv.load_state_dict(plain.state_dict())
+    torch.testing.assert_close(conv(x.float().detach().double()).float(), plain(x.detach().float()), rtol=1e-5, atol=1e-6)

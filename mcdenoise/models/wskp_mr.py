@@ -19,6 +19,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from mcdenoise.models.blocks import PointwiseConv
 from mcdenoise.models.registry import Denoiser, register_model
 from mcdenoise.models.wskp import _PAPER, INPUT_CHANNELS, wskp_input
 from mcdenoise.ops.importance import fused_importance_filter
@@ -64,7 +65,7 @@ class WSKPMR(Denoiser):
         self.dec = nn.ModuleList(_double_conv(ch[i] + ch[i + 1], ch[i]) for i in range(self.levels - 1))
         # Every level: N importance + N fusion logits; all but the coarsest: + 1 blend logit.
         self.heads = nn.ModuleList(
-            nn.Conv2d(ch[i], 2 * n + (1 if i < self.levels - 1 else 0), 1) for i in range(self.levels)
+            PointwiseConv(ch[i], 2 * n + (1 if i < self.levels - 1 else 0)) for i in range(self.levels)
         )
 
     def required_channels(self) -> list[str]:
