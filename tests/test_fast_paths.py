@@ -127,3 +127,58 @@ def test_pointwise_conv_gradcheck_and_state_dict() -> None:
     plain = nn.Conv2d(3, 2, 1)
     conv.load_state_dict(plain.state_dict())
     torch.testing.assert_close(conv(x.float().detach().double()).float(), plain(x.detach().float()), rtol=1e-5, atol=1e-6)
+
+
+# -- precision="bfloat16": convolution trunks in bfloat16 and channels_last ------------------
+
+
+@pytest.mark.parametrize("name", ALL)
+def test_bfloat16_trunks_close_to_float32(name: str) -> None:
+    """Bug caught: a trunk name that no longer resolves (silently no speed-up), a trunk whose
+    output comes back in bfloat16 or channels_last into float32 kernel code, or a model part
+    that must stay float32 (exponentials, normalisations) wrapped by mistake: its error would be
+    far above bfloat16's ~0.4 % per value."""
+    from mcdenoise.models.inference import ReducedPrecision
+
+    torch.manual_seed(0)
+    ref = build_model(name, "small")
+    _randomise_bn(ref)
+    low = copy.deepcopy(ref)
+    batch = synthetic_batch(ref, spp=3, height=20, width=18, generator=torch.Generator().manual_seed(1))
+    prepare_inference(ref, fast=True)
+    prepare_inference(low, fast=True, precision="bfloat16")
+    wrapped = [m for m in low.modules() if isinstance(m, ReducedPrecision)]
+    assert wrapped, f"{name}: no convolution trunk runs in bfloat16"
+    assert all(p.dtype == torch.bfloat16 for m in wrapped for p in m.parameters())
+    want = denoise_batch(ref, batch)
+    got = denoise_batch(low, batch)
+    assert got.dtype == torch.float32 and got.is_contiguous()
+    err = ((got - want).abs().max() / want.abs().max()).item()
+    assert err < 0.05, f"{name}: bfloat16 trunks differ by {err:.3f} of the image maximum"
+
+
+def test_precision_only_with_fast_and_resolves() -> None:
+    """Bug caught: the reference path (fast=False) picking up bfloat16, or an unknown precision
+    accepted silently."""
+    from mcdenoise.models.inference import ReducedPrecision, resolve_precision
+
+    m = prepare_inference(build_model("wskp", "small"), fast=False, precision="bfloat16")
+    assert not any(isinstance(x, ReducedPrecision) for x in m.modules())
+    assert resolve_precision(None) == "float32" and resolve_precision("bfloat16") == "bfloat16"
+    assert resolve_precision("auto") in ("float32", "bfloat16")
+    with pytest.raises(ValueError, match="precision 'fp8'"):
+        resolve_precision("fp8")
+
+
+@pytest.mark.parametrize("band_bytes", [1, 500, 1 << 30])
+def test_convert_layout_equals_to(band_bytes: int) -> None:
+    """Bug caught: the banded NCHW <-> channels_last copy dropping or shifting rows (bands of one
+    row, several rows with a short last band, the whole tensor)."""
+    from mcdenoise.models.inference import convert_layout
+
+    x = torch.randn(2, 5, 7, 3)
+    cl = convert_layout(x, torch.bfloat16, torch.channels_last, band_bytes=band_bytes)
+    assert cl.is_contiguous(memory_format=torch.channels_last) and cl.dtype == torch.bfloat16
+    assert torch.equal(cl, x.to(torch.bfloat16))
+    back = convert_layout(cl, torch.float32, torch.contiguous_format, band_bytes=band_bytes)
+    assert back.is_contiguous() and torch.equal(back, x.to(torch.bfloat16).float())

@@ -302,3 +302,36 @@ def test_missing_channel_named() -> None:
     del b["specular_variance"]
     with pytest.raises(ValueError, match="specular_variance"):
         model(b)
+
+
+@pytest.mark.parametrize("band_bytes", [1, 3000, 1 << 30])
+def test_banded_kernel_application_equals_whole_image(band_bytes: int) -> None:
+    """Bug caught: the inference-only banded mask/softmax/gather (row offset of the border mask
+    wrong, a band's last rows dropped, a band reading the wrong image rows) differing from the
+    whole-image training path. Bands of 1 row, a few rows (several bands, the last one short) and
+    the whole image; float64 so only the algebra is compared."""
+    from mcdenoise.models.kpcn import _apply_kernels_banded, _mask_out_of_image_taps
+    from mcdenoise.ops.gather import gather
+
+    g = torch.Generator().manual_seed(3)
+    k, h, w = 5, 13, 9
+    color = torch.rand((2, 3, h, w), generator=g, dtype=torch.float64)
+    logits = torch.randn((2, k * k, h, w), generator=g, dtype=torch.float64) * 3
+    want = gather(color, torch.softmax(_mask_out_of_image_taps(logits, k), dim=1))
+    got = _apply_kernels_banded(color, logits, k, band_bytes=band_bytes)
+    torch.testing.assert_close(got, want, rtol=1e-12, atol=1e-12)
+    # A channels_last logit tensor (what a bfloat16 trunk hands over) gives the same result.
+    got_cl = _apply_kernels_banded(color, logits.contiguous(memory_format=torch.channels_last), k, band_bytes=3000)
+    torch.testing.assert_close(got_cl, want, rtol=1e-12, atol=1e-12)
+
+
+def test_model_forward_no_grad_equals_grad_path() -> None:
+    """Bug caught: the model taking the banded path under no_grad with other kernels than the
+    training path would (e.g. a branch's logits not masked): both forwards must agree."""
+    torch.manual_seed(0)
+    m = build_model("kpcn", "small").double().eval()
+    batch = synthetic_batch(m, height=11, width=14, dtype=torch.float64, generator=torch.Generator().manual_seed(2))
+    with torch.no_grad():
+        a = m(batch)
+    b = m(batch).detach()
+    torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-12)

@@ -30,7 +30,7 @@ from torch import nn
 
 from mcdenoise.data.channels import variance_name
 from mcdenoise.models.registry import Denoiser, register_model
-from mcdenoise.ops.gather import gather
+from mcdenoise.ops.gather import gather, gather_rows
 from mcdenoise.ops.kernels import softmax_kernel
 
 __all__ = ["KPCNConfig", "KPCN", "kpcn_features", "FEATURES_PER_BRANCH"]
@@ -136,22 +136,43 @@ def kpcn_features(batch: dict[str, torch.Tensor], config: KPCNConfig) -> dict[st
     return out
 
 
-def _mask_out_of_image_taps(z: torch.Tensor, k: int) -> torch.Tensor:
-    """(B, K*K, H, W) logits -> same with -inf wherever tap (i-r, j-r) of a pixel leaves the image.
+def _mask_out_of_image_taps(z: torch.Tensor, k: int, row0: int = 0, height: int | None = None) -> torch.Tensor:
+    """(B, K*K, h, W) logits -> same with -inf wherever tap (i-r, j-r) of a pixel leaves the image.
 
-    Built as a row term (K, H) plus a column term (K, W) broadcast into the sum, so no
+    ``z`` holds image rows ``row0 .. row0 + h - 1`` of an image ``height`` rows high (default: all
+    of it). Built as a row term (K, h) plus a column term (K, W) broadcast into the sum, so no
     K*K x H x W mask is allocated (it would be ~1 GB at 1080p with K = 21).
     """
     b, _, h, w = z.shape
+    height = h if height is None else height
     r = k // 2
     off = torch.arange(-r, r + 1, device=z.device)
-    ys = torch.arange(h, device=z.device).view(1, h) + off.view(k, 1)  # (K, H)
+    ys = torch.arange(row0, row0 + h, device=z.device).view(1, h) + off.view(k, 1)  # (K, h)
     xs = torch.arange(w, device=z.device).view(1, w) + off.view(k, 1)  # (K, W)
     neg = torch.tensor(float("-inf"), dtype=z.dtype, device=z.device)
     zero = torch.zeros((), dtype=z.dtype, device=z.device)
-    row = torch.where((ys >= 0) & (ys < h), zero, neg).view(1, k, 1, h, 1)
+    row = torch.where((ys >= 0) & (ys < height), zero, neg).view(1, k, 1, h, 1)
     col = torch.where((xs >= 0) & (xs < w), zero, neg).view(1, 1, k, 1, w)
     return (z.view(b, k, k, h, w) + row + col).view(b, k * k, h, w)
+
+
+def _apply_kernels_banded(color: torch.Tensor, logits: torch.Tensor, k: int, band_bytes: int = 8 << 20) -> torch.Tensor:
+    """Inference form of ``gather(color, softmax(mask(logits)))``, one row band at a time.
+
+    color (B, 3, H, W) float32; logits (B, K*K, H, W) in any dtype and memory format (a bfloat16
+    channels_last trunk output is converted here band by band, in float32). Every band's mask,
+    softmax and gather stay in the cache instead of streaming three K*K x H x W tensors through
+    memory; equal to the whole-image path (tests/test_model_kpcn.py).
+    """
+    b, _, h, w = color.shape
+    out = torch.empty_like(color)
+    rows = max(1, band_bytes // max(1, b * k * k * w * 4))
+    for r0 in range(0, h, rows):
+        r1 = min(h, r0 + rows)
+        zb = logits[:, :, r0:r1].to(color.dtype, memory_format=torch.contiguous_format)
+        wb = torch.softmax(_mask_out_of_image_taps(zb, k, r0, h), dim=1)
+        out[:, :, r0:r1] = gather_rows(color, wb, r0)
+    return out
 
 
 class _Branch(nn.Module):
@@ -176,6 +197,9 @@ class KPCN(Denoiser):
     """KPCN / DPCN, split or single-branch, chosen by :class:`KPCNConfig`."""
 
     input_kind = "pixels"
+    #: The branches' logits may come back from a bfloat16 channels_last trunk as they are:
+    #: :func:`_apply_kernels_banded` converts them a row band at a time.
+    trunk_outputs_any_layout = True
 
     def __init__(self, config: KPCNConfig) -> None:
         super().__init__(config)
@@ -187,6 +211,11 @@ class KPCN(Denoiser):
         out_ch = 3 if config.direct else config.kernel_size**2
         names = ("diffuse", "specular") if config.split else ("radiance",)
         self.branches = nn.ModuleDict({n: _Branch(config, FEATURES_PER_BRANCH, out_ch) for n in names})
+
+    def conv_trunks(self) -> list[str]:
+        """Each branch's convolution stack (its last layer outputs the kernel logits, which the
+        softmax then takes in float32)."""
+        return [f"branches.{n}" for n in self.branches]
 
     def required_channels(self) -> list[str]:
         colors = ["diffuse", "specular"] if self.config.split else ["radiance"]
@@ -211,10 +240,13 @@ class KPCN(Denoiser):
         for name, x in self.features(batch).items():
             z = self.branches[name](x)
             if self.config.direct:
-                out[name] = z
+                out[name] = z.to(x.dtype, memory_format=torch.contiguous_format)
                 continue
             # Taps outside the image get no weight, so the softmax renormalises over the image
             # instead of blending in zero padding at the borders.
+            if not torch.is_grad_enabled():
+                out[name] = _apply_kernels_banded(x[:, :3], z, self.config.kernel_size)
+                continue
             z = _mask_out_of_image_taps(z, self.config.kernel_size)
             out[name] = gather(x[:, :3], softmax_kernel(z))
         return out

@@ -51,6 +51,18 @@ class Denoiser(nn.Module):
     def forward(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:  # (B, 3, H, W)
         raise NotImplementedError
 
+    def conv_trunks(self) -> list[str]:
+        """Dotted names of the submodules that may run in bfloat16 and channels_last at inference
+        (:func:`mcdenoise.models.inference.prepare_inference` with ``precision="bfloat16"``).
+
+        A trunk maps feature maps to feature maps with convolutions, activations, pooling and
+        resampling only: no exponentials, normalisations or kernel application, which stay in
+        float32. Default: every :class:`~mcdenoise.models.blocks.UNet` of the model.
+        """
+        from mcdenoise.models.blocks import UNet
+
+        return [n for n, m in self.named_modules() if isinstance(m, UNet)]
+
 
 @dataclass
 class ModelEntry:

@@ -192,6 +192,10 @@ class WSKP(Denoiser):
     def required_channels(self) -> list[str]:
         return ["radiance", "albedo", "normal", "depth"]
 
+    def conv_trunks(self) -> list[str]:
+        """The ImportanceNet (its logits enter the importance filter in float32)."""
+        return ["net"]
+
     def features(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
         """(B, 10, H, W) ImportanceNet input: LDR colour, albedo, normal, depth."""
         return wskp_input(batch, self.config.demod_threshold)[0]

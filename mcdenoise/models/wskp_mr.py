@@ -71,6 +71,10 @@ class WSKPMR(Denoiser):
     def required_channels(self) -> list[str]:
         return ["radiance", "albedo", "normal", "depth"]
 
+    def conv_trunks(self) -> list[str]:
+        """Every double convolution of the U-Net (pooling, upsampling and heads stay float32)."""
+        return [f"enc.{i}" for i in range(len(self.enc))] + [f"dec.{i}" for i in range(len(self.dec))]
+
     def features(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
         """(B, 10, H, W) U-Net input: LDR colour, albedo, normal, depth."""
         return wskp_input(batch, self.config.demod_threshold)[0]
