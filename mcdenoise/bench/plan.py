@@ -100,6 +100,10 @@ class BenchConfig:
     device: str = "cpu"
     fast: bool = True
     """Fast inference paths (:mod:`mcdenoise.models.inference`); False times the reference."""
+    precision: str = "auto"
+    """Convolution trunks in ``float32``, ``bfloat16``, or ``auto`` (bfloat16 where the device
+    computes it natively; see :func:`mcdenoise.models.inference.resolve_precision`). The test-split
+    metrics of each precision are in docs/PERFORMANCE.md."""
     train_batch: int = 8
     """Crops per training step for the throughput figure (``mcdenoise train``'s default)."""
     train_crop: int = 48

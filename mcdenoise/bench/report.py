@@ -72,7 +72,7 @@ def markdown(res: dict[str, Any], command: str = "") -> str:
     c = res["config"]
     lines += [
         f"Median of {c['rounds']} interleaved rounds after {c['warmup']} warm-up call(s); fast inference paths "
-        f"{'on' if c['fast'] else 'off'}. Peak memory: {res['memory_method']}. Machine peak: a 3x3 convolution, "
+        f"{'on' if c['fast'] else 'off'}, convolution trunks in {c.get('precision', 'float32')}. Peak memory: {res['memory_method']}. Machine peak: a 3x3 convolution, "
         f"{pk['channels']} channels at {pk['side']}x{pk['side']}, ran at **{pk['gflops']:.1f} GFLOP/s**.",
         "",
     ]

@@ -20,7 +20,7 @@ from mcdenoise.bench.memory import MEMORY_METHOD, peak_call_memory
 from mcdenoise.bench.plan import ANCHOR_SPP, BenchConfig, Method, default_methods, priority
 from mcdenoise.bench.timing import interleaved_times, median_time, synchronizer
 from mcdenoise.data.channels import base_name, num_components
-from mcdenoise.models.inference import inference_context, prepare_inference
+from mcdenoise.models.inference import inference_context, prepare_inference, resolve_precision
 from mcdenoise.models.registry import build_model, synthetic_batch
 
 __all__ = ["run_bench", "machine_info", "peak_conv_gflops"]
@@ -148,6 +148,7 @@ class _Runner:
     def __init__(self, cfg: BenchConfig, log: Log) -> None:
         self.cfg, self.log = cfg, log
         self.methods = cfg.methods or default_methods()
+        self.precision = resolve_precision(cfg.precision, cfg.device) if cfg.fast else "float32"
         self.models: dict[str, torch.nn.Module] = {}
         self.kind: dict[str, str] = {}
         for m in self.methods:
@@ -156,7 +157,7 @@ class _Runner:
                 continue
             torch.manual_seed(cfg.seed)
             model = build_model(m.name, m.preset).to(cfg.device)
-            self.models[m.label] = prepare_inference(model, fast=cfg.fast)
+            self.models[m.label] = prepare_inference(model, fast=cfg.fast, precision=self.precision)
             self.kind[m.label] = model.input_kind
         self.measured: dict[tuple[str, int | None], tuple[int, float]] = {}  # -> (pixels, seconds)
         self.entries: list[dict[str, Any]] = []
@@ -311,7 +312,8 @@ def run_bench(cfg: BenchConfig, log: Log = _stderr) -> dict[str, Any]:
     """Every measurement of one bench run, as a JSON-ready dict (see module docstring)."""
     t0 = time.perf_counter()
     info = machine_info(cfg.device)
-    log(f"bench on {info['cpu']} ({info['cores']} cores, {info['torch_threads']} torch threads), device {cfg.device}")
+    log(f"bench on {info['cpu']} ({info['cores']} cores, {info['torch_threads']} torch threads), device {cfg.device}, "
+        f"precision {resolve_precision(cfg.precision, cfg.device) if cfg.fast else 'float32'}")
     gflops = peak_conv_gflops(cfg.peak_conv[0], cfg.peak_conv[1], cfg.device)
     log(f"peak 3x3 conv {cfg.peak_conv[0]} channels: {gflops:.1f} GFLOP/s")
     runner = _Runner(cfg, log)
@@ -332,6 +334,7 @@ def run_bench(cfg: BenchConfig, log: Log = _stderr) -> dict[str, Any]:
         "machine": info,
         "config": {"sizes": [list(s) for s in cfg.sizes], "spp": list(cfg.spp), "warmup": cfg.warmup,
                    "rounds": cfg.rounds, "budget_s": cfg.budget_s, "fast": cfg.fast, "device": cfg.device,
+                   "precision": runner.precision,
                    "methods": [m.label for m in runner.methods], "train": {"batch": cfg.train_batch,
                    "crop": cfg.train_crop, "spp": cfg.train_spp, "steps": cfg.train_steps}},
         "memory_method": MEMORY_METHOD if not cfg.device.startswith("cuda") else "torch.cuda.max_memory_allocated above the allocation before the call",

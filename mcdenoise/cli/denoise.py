@@ -33,6 +33,9 @@ def add_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--normal", type=Path, default=None, help="normal image (EXR) when INPUT is only the colour")
     p.add_argument("--depth", type=Path, default=None, help="depth image (single-channel EXR)")
     p.add_argument("--device", default=None, help="cpu or cuda (default: cuda when available)")
+    p.add_argument("--precision", choices=("float32", "bfloat16", "auto"), default="auto",
+                   help="convolution trunks: auto (default: bfloat16 where the CPU/GPU computes it natively, else float32), "
+                        "float32, bfloat16; the shipped models' test metrics agree within 2%% (docs/PERFORMANCE.md)")
     p.add_argument("--tile", default="auto", help="tile side in pixels, or auto (sized from --max-memory)")
     p.add_argument("--max-memory", default="4G", help="memory budget of one tile, e.g. 4G or 512M (default 4G)")
     p.add_argument("--preview", type=Path, default=None, help="also write an 8-bit sRGB PNG preview here")
@@ -121,8 +124,9 @@ def _denoise(args: argparse.Namespace, src: Path, tile: int | str, budget: int) 
         inputs = from_folder(src)
     else:
         inputs = from_exr(src, albedo=args.albedo, normal=args.normal, depth=args.depth)
-    model, info = choose_model(inputs, args.model, device=device)
-    print(f"model: {info['name']} ({info['preset']}, {info['source']} weights {info['weights']}; {info['why']})")
+    model, info = choose_model(inputs, args.model, device=device, precision=args.precision)
+    print(f"model: {info['name']} ({info['preset']}, {info['source']} weights {info['weights']}; {info['why']}; "
+          f"{info['precision']})")
     kind = "per-sample" if model.input_kind == "samples" else "per-pixel"
     print(f"channels: {', '.join(info['channels'])} ({kind})")
     out, run = denoise_inputs(inputs, model, device=device, tile=tile, max_memory=budget)

@@ -39,6 +39,8 @@ def add_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto",
                    help="device of the models and NL-means (default auto: CUDA when available)")
     p.add_argument("--threads", type=int, help="torch CPU threads (default: torch's; 1 is faster on busy cores)")
+    p.add_argument("--precision", nargs="+", default=["float32"], choices=("float32", "bfloat16", "auto"),
+                   help="run every model in each: float32 (default), bfloat16 (convolution trunks; rows labelled +bf16), auto")
     p.add_argument("--results-md", type=Path, help="also write the tables into this Markdown file...")
     p.add_argument("--section", help="...as its generated block eval:SECTION")
     p.add_argument("--no-html", action="store_true", help="only results.json and results.csv")
@@ -61,6 +63,7 @@ def run(args: argparse.Namespace) -> int:
         max_images=args.max_images,
         device=args.device,
         threads=args.threads,
+        precision=args.precision,
         results_md=args.results_md,
         section=args.section,
         html=not args.no_html,
@@ -92,6 +95,8 @@ def _command_from(args: argparse.Namespace) -> str:
         parts += ["--device", args.device]
     if args.threads is not None:
         parts += ["--threads", str(args.threads)]
+    if args.precision != ["float32"]:
+        parts += ["--precision", *args.precision]
     if args.results_md is not None:
         parts += ["--results-md", str(args.results_md), "--section", str(args.section)]
     return "mcdenoise " + shlex.join(parts)

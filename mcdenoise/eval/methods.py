@@ -162,13 +162,14 @@ class ModelMethod(Method):
 
     kind = "model"
 
-    def __init__(self, name: str, model: torch.nn.Module, load_info: dict[str, Any], device: torch.device | str) -> None:
+    def __init__(self, name: str, model: torch.nn.Module, load_info: dict[str, Any], device: torch.device | str,
+                 precision: str = "float32") -> None:
         from mcdenoise.models.inference import prepare_inference
 
         super().__init__(name)
         self.parameters = sum(p.numel() for p in model.parameters())  # the trained form's, before folding
         # The inference form that bench times and denoise runs (WSKP's RepVGG blocks folded).
-        self.model = prepare_inference(model, fast=True)
+        self.model = prepare_inference(model, fast=True, precision=precision)
         self.load_info = load_info
         self.device = torch.device(device)
 

@@ -155,8 +155,10 @@ def _device(device: str | None) -> torch.device:
 
 
 def build_methods(models: Sequence[str | os.PathLike], oidn: Sequence[str], classic: bool,
-                  device: torch.device) -> list[Method]:
-    """Noisy, OIDN per quality, NL-means, then each model (labels made unique)."""
+                  device: torch.device, precisions: Sequence[str] = ("float32",)) -> list[Method]:
+    """Noisy, OIDN per quality, NL-means, then each model in each precision (labels made
+    unique; a bfloat16 run of a model is labelled ``LABEL+bf16``)."""
+    from mcdenoise.models.inference import resolve_precision
     from mcdenoise.models.weights import load_denoiser
 
     methods: list[Method] = [NoisyMethod()]
@@ -171,14 +173,19 @@ def build_methods(models: Sequence[str | os.PathLike], oidn: Sequence[str], clas
     if classic:
         methods.append(ClassicMethod(device=device))
     taken = {m.name for m in methods}
+    try:
+        resolved = list(dict.fromkeys(resolve_precision(p, device) for p in precisions))
+    except ValueError as e:
+        raise EvalError(f"--precision: {e}") from None
     for spec in models:
-        net, info = load_denoiser(spec, device=device)
-        label = str(info.get("label") or info["name"])
-        base, n = label, 2
-        while label in taken:
-            label, n = f"{base}-{n}", n + 1
-        taken.add(label)
-        methods.append(ModelMethod(label, net, info, device))
+        for prec in resolved:
+            net, info = load_denoiser(spec, device=device)
+            label = str(info.get("label") or info["name"]) + ("+bf16" if prec == "bfloat16" else "")
+            base, n = label, 2
+            while label in taken:
+                label, n = f"{base}-{n}", n + 1
+            taken.add(label)
+            methods.append(ModelMethod(label, net, {**info, "precision": prec}, device, precision=prec))
     return methods
 
 
@@ -254,6 +261,7 @@ def evaluate(
     max_images: int | None = None,
     device: str | None = "auto",
     threads: int | None = None,
+    precision: Sequence[str] = ("float32",),
     metrics: Sequence[str] | None = None,
     results_md: str | os.PathLike | None = None,
     section: str | None = None,
@@ -277,6 +285,9 @@ def evaluate(
         device: ``cpu``, ``cuda`` or ``auto`` (CUDA when available) for the models and NL-means.
         threads: torch CPU threads during the evaluation (default: torch's); 1 is much faster on
             a machine whose cores are busy with other work, and the count is in the provenance.
+        precision: run every model in each of these (``float32``, ``bfloat16``, ``auto``; see
+            :func:`mcdenoise.models.inference.prepare_inference`); bfloat16 rows are labelled
+            ``+bf16``, so one report compares both.
         metrics: metric names (default: every metric of :data:`mcdenoise.eval.metrics.METRICS`).
         results_md, section: also write the tables into block ``eval:SECTION`` of this Markdown file.
         html: write index.html and its images.
@@ -309,7 +320,7 @@ def evaluate(
         torch.set_num_threads(threads)
     try:
         doc = _evaluate(models, data_list, out, split, ks, list(oidn), classic, max_images, dev, metric_names,
-                        images, notes, html, progress, command, save_images)
+                        images, notes, html, progress, command, save_images, tuple(precision))
     finally:
         torch.set_num_threads(old_threads)
     if results_md is not None and section is not None:
@@ -333,11 +344,11 @@ def _save_images(folder: Path, k: int, outputs: dict[str, np.ndarray], ref: np.n
 def _evaluate(models: Sequence[str | os.PathLike], data_list: list[Any], out: Path, split: str, ks: list[int],
               oidn: list[str], classic: bool, max_images: int | None, dev: torch.device, metric_names: list[str],
               images: list[EvalImage], notes: list[str], html: bool, progress: bool, command: str | None,
-              save_images: bool = False) -> dict[str, Any]:
+              save_images: bool = False, precisions: tuple[str, ...] = ("float32",)) -> dict[str, Any]:
     """The evaluation loop and the report folder (arguments checked by :func:`evaluate`)."""
     from tqdm import tqdm
 
-    methods = build_methods(models, list(oidn), classic, dev)
+    methods = build_methods(models, list(oidn), classic, dev, precisions)
     prov = provenance(dev, bool(oidn))
     if command is None:
         command = f"mcdenoise.eval.evaluate(models={list(map(str, models))}, data={list(map(str, data_list))}, " \

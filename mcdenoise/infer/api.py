@@ -61,6 +61,7 @@ def denoise(
     model: str | os.PathLike | Denoiser | None = None,
     device: str | torch.device | None = None,
     max_memory: int | str | None = None,
+    precision: str = "auto",
 ) -> Any:
     """Denoise one image.
 
@@ -79,6 +80,10 @@ def denoise(
             inputs are given, as ``mcdenoise denoise`` does.
         device: ``"cpu"``, ``"cuda"``...; None: CUDA when available.
         max_memory: budget for one tile's model call, bytes or ``"4G"``; default 4 GiB.
+        precision: ``auto`` (default: bfloat16 where the device computes it natively), ``float32``
+            or ``bfloat16`` for the convolution trunks of a model given by name or weights (a
+            :class:`Denoiser` instance is run as it is). The shipped models' test-split metrics
+            agree within 2 % between the two (docs/PERFORMANCE.md).
 
     Returns:
         The denoised radiance with ``color``'s kind, dtype, layout and device.
@@ -116,7 +121,7 @@ def denoise(
             raise InputError(f"model {type(net).__name__} needs channels that {inputs.label} lacks: {', '.join(missing)}")
         label = type(net).__name__
     else:
-        net, info = choose_model(inputs, None if model is None else str(model), device=dev)
+        net, info = choose_model(inputs, None if model is None else str(model), device=dev, precision=precision)
         label = f"{info['name']} ({info['preset']}, {info['source']}: {info['why']})"
     budget = None if max_memory is None else parse_memory(max_memory)
     out, run = denoise_inputs(inputs, net, device=dev, max_memory=budget, progress=False)

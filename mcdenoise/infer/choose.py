@@ -88,12 +88,14 @@ def _fallback_rank(name: str) -> tuple[int, str]:
 
 
 def choose_model(inputs: Inputs, spec: str | None = None, *, device: torch.device | str = "cpu",
-                 preset: str | None = None) -> tuple[Denoiser, dict[str, Any]]:
+                 preset: str | None = None, precision: str = "float32") -> tuple[Denoiser, dict[str, Any]]:
     """Load the model for ``inputs``: ``spec`` (name, weights file or run folder) or the best shipped one.
 
     Returns ``(model in eval mode, info)``; ``info`` is :func:`mcdenoise.models.weights.load_denoiser`'s
     plus ``channels``, the input channels the model reads, and ``why``, one line on the choice.
     Raises :class:`InputError` (one line, naming the missing channels) when the model cannot run.
+    ``precision``: of the convolution trunks (:func:`mcdenoise.models.inference.prepare_inference`);
+    ``info["precision"]`` says which one was used.
     """
     from mcdenoise.models.weights import load_denoiser, model_from_config, shipped
 
@@ -131,7 +133,11 @@ def choose_model(inputs: Inputs, spec: str | None = None, *, device: torch.devic
         info["why"] = (f"lowest test relMSE ({score:.4g}) among shipped models whose inputs are present"
                        if score is not None else "first in the fixed order among shipped models whose inputs are present")
     info["channels"] = [c for c in model.required_channels() if c != "scene_features"]
-    from mcdenoise.models.inference import prepare_inference
+    from mcdenoise.models.inference import prepare_inference, resolve_precision
 
+    try:
+        info["precision"] = resolve_precision(precision, device)
+    except ValueError as e:
+        raise InputError(f"--precision: {e}") from None
     # Weights are loaded: fold WSKP's RepVGG branches (parity-tested in tests/test_fast_paths.py).
-    return prepare_inference(model, fast=True), info
+    return prepare_inference(model, fast=True, precision=info["precision"]), info
