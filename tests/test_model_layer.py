@@ -354,8 +354,29 @@ def test_row_banded_inference_matches_whole_image(name: str, monkeypatch: pytest
         kk = model.config.kernel_size**2
         monkeypatch.setattr(layer_module, "_BAND_ELEMS", 4 * b * model.config.layers * (kk + 3) * w)
         four_rows = model(batch)
+        monkeypatch.setattr(layer_module, "_KEEP_BYTES", 0)  # reducer recomputed in the second pass
+        recomputed = model(batch)
     assert rel_diff(banded, whole) <= 1e-12
     assert rel_diff(four_rows, whole) <= 1e-12
+    assert rel_diff(recomputed, whole) <= 1e-12
+
+
+def test_banded_inference_keeps_the_reducer_output(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Catches: the second banded pass recomputing the features and the reducer although their
+    output was kept (twice the per-sample cost once bands start: 32 spp at 256x256 cost 6-8x
+    the 16-spp time)."""
+    model = build_model("layer_optimized", "small").eval()
+    batch = synthetic_batch(model, spp=2, height=12, width=6)
+    calls = []
+    model.reducer.register_forward_hook(lambda *a: calls.append(1))
+    monkeypatch.setattr(layer_module, "_BAND_ELEMS", 1)
+    with torch.no_grad():
+        model(batch)
+        kept = len(calls)
+        monkeypatch.setattr(layer_module, "_KEEP_BYTES", 0)
+        calls.clear()
+        model(batch)
+    assert kept == 12 and len(calls) == 24, (kept, len(calls))
 
 
 @pytest.mark.parametrize("compositing", ["alpha", "weighted"])

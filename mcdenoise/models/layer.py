@@ -51,6 +51,9 @@ _AP = SCENE_FEATURES.index("aperture_radius")
 #: (B, L, K*K, rows, W), or a band's per-sample features (B, S, C, rows, W). 2^26 float32 = 256 MB:
 #: large enough that the kernels' row halo (K - 1 rows of zero weights) costs little splat time.
 _BAND_ELEMS = 1 << 26
+#: Largest reducer output (B, S, E, H, W) kept between the two banded passes instead of
+#: recomputed (1080p at 8 spp with E = 8: 0.53 GB; at 32 spp and above it is recomputed).
+_KEEP_BYTES = 1 << 30
 _FOCUS = SCENE_FEATURES.index("focus_distance")
 
 
@@ -334,10 +337,19 @@ class LayerDenoiser(Denoiser):
         def band(y0: int, y1: int) -> dict[str, torch.Tensor]:
             return {n: (v[..., y0:y1, :] if v.dim() == 5 else v) for n, v in batch.items()}
 
+        # The reducer's embeddings (E channels, fewer than the F input features) are kept between
+        # the two passes when they fit _KEEP_BYTES, so the second pass does not recompute the
+        # features and the reducer: recomputing doubled the per-sample cost exactly when the
+        # bands started (32 spp at 256x256 took 6-8x the 16-spp time, not 2x).
+        e_bytes = b * s * cfg.embed_width * h * w * batch["radiance"].element_size()
+        kept = batch["radiance"].new_empty((b, s, cfg.embed_width, h, w)) if e_bytes <= _KEEP_BYTES else None
         mean = None
         for y0 in range(0, h, rows):
             y1 = min(h, y0 + rows)
-            e = self.reducer(self.features(band(y0, y1))[0]).mean(dim=1)
+            e = self.reducer(self.features(band(y0, y1))[0])
+            if kept is not None:
+                kept[..., y0:y1, :] = e
+            e = e.mean(dim=1)
             if mean is None:
                 mean = e.new_empty(b, e.shape[1], h, w)
             mean[..., y0:y1, :] = e
@@ -346,8 +358,11 @@ class LayerDenoiser(Denoiser):
         sums: list[torch.Tensor] = []
         for y0 in range(0, h, rows):
             y1 = min(h, y0 + rows)
-            f, radiance = self.features(band(y0, y1))
-            e = self.reducer(f)
+            if kept is not None:
+                e, radiance = kept[..., y0:y1, :], batch["radiance"][..., y0:y1, :]
+            else:
+                f, radiance = self.features(band(y0, y1))
+                e = self.reducer(f)
             parts = self.partition(e, ctx[..., y0:y1, :], radiance.to(e.dtype))
             if not sums:
                 sums = [p.new_empty(*p.shape[:-2], h, w) for p in parts]

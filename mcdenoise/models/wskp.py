@@ -70,7 +70,13 @@ def effective_albedo(albedo: torch.Tensor, normal: torch.Tensor, threshold: floa
 
     The same value multiplies the filtered irradiance back, so the inverse is exact.
     """
-    coverage = normal.norm(dim=1, keepdim=True).clamp(0, 1)
+    # |normal| written out: torch.linalg.vector_norm over the 3 channels cost as much as the whole
+    # importance filter on the CPU (79 ms at 960x540).  Clamping the squared norm to [tiny, 1]
+    # before the root equals clamp(|n|, 0, 1) up to sqrt(tiny) ~ 1e-19 and keeps the gradient
+    # finite (0) at zero normals, as norm's is.
+    n0, n1, n2 = normal[:, 0:1], normal[:, 1:2], normal[:, 2:3]
+    squared = torch.addcmul(torch.addcmul(n0 * n0, n1, n1), n2, n2)
+    coverage = squared.clamp(torch.finfo(squared.dtype).tiny, 1).sqrt()
     a = albedo + (1 - coverage)
     return torch.maximum(a, 1 - a / threshold)
 
