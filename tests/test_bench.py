@@ -27,6 +27,15 @@ def test_interleaved_times_round_robin() -> None:
     assert {k: len(v) for k, v in out.items()} == {"a": 3, "b": 3}
 
 
+def test_interleaved_times_caps_slow_entries_to_the_first_rounds() -> None:
+    """Bug caught: a slow entry capped to one round timed after the others (out of their
+    rounds, so background load would hit it alone) or dropping the others' rounds."""
+    order: list[str] = []
+    out = interleaved_times({"a": lambda: order.append("a"), "b": lambda: order.append("b")}, 3, max_rounds={"b": 1})
+    assert order == ["a", "b", "a", "a"]
+    assert {k: len(v) for k, v in out.items()} == {"a": 3, "b": 1}
+
+
 @pytest.mark.skipif(not cpu_peak_supported(), reason="needs Linux /proc/self/clear_refs")
 def test_peak_memory_is_per_call_and_sees_torch() -> None:
     """Bugs caught: a Python-heap measure (tracemalloc sees 0 of a torch tensor), and a
@@ -105,6 +114,11 @@ def test_run_bench_reduced_set_and_budget() -> None:
     assert {t["method"] for t in res["training"]} == {"wskp:small", "layer_optimized:small"}
     assert all(t["crops_per_s"] > 0 for t in res["training"])
     assert res["peak_conv"]["gflops"] > 0
+    # slow_s = 0: every entry after the first size is "slow" and gets one round, the first size all.
+    cfg.rounds, cfg.slow_s, cfg.train_steps = 2, 0.0, 0
+    res = run_bench(cfg, log=lambda _: None)
+    n = {(e["method"], e["width"]): len(e["times_s"]) for e in res["entries"] if e["status"] == "ok"}
+    assert n[("oidn:high", 24)] == 2 and n[("oidn:high", 40)] == 1
 
 
 @needs_oidn

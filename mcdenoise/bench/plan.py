@@ -90,6 +90,10 @@ class BenchConfig:
     """Untimed calls per entry before timing (the first one also measures peak memory)."""
     rounds: int = 3
     """Timed rounds; each entry's figure is the median over rounds."""
+    slow_s: float = 8.0
+    """At sizes after the first, an entry whose warm-up call took longer than this gets one timed
+    round (still in the same round as OIDN) instead of ``rounds``: a 1080p SBMC call is tens of
+    seconds, and its spread between rounds is small next to that."""
     budget_s: float = 300.0
     """Estimated seconds of timed work allowed for the sizes after the first (OIDN and targets
     run whatever their estimate, and their estimate counts against it)."""

@@ -70,8 +70,10 @@ def markdown(res: dict[str, Any], command: str = "") -> str:
     if command:
         lines += [f"Command: `{command}`", ""]
     c = res["config"]
+    slow = f" (one round for calls over {c['slow_s']:g} s after the first size)" if c.get("slow_s") else ""
     lines += [
-        f"Median of {c['rounds']} interleaved rounds after {c['warmup']} warm-up call(s); fast inference paths "
+        f"Median of {c['rounds']} interleaved rounds after {c['warmup']} warm-up call(s)"
+        f"{slow}; fast inference paths "
         f"{'on' if c['fast'] else 'off'}, convolution trunks in {c.get('precision', 'float32')}. Peak memory: {res['memory_method']}. Machine peak: a 3x3 convolution, "
         f"{pk['channels']} channels at {pk['side']}x{pk['side']}, ran at **{pk['gflops']:.1f} GFLOP/s**.",
         "",

@@ -179,7 +179,6 @@ class _Runner:
                 cands.append((m, None))
         if first:
             return cands, 0.0
-        per_call = cfg.warmup + cfg.rounds
         keyed = []
         for m, s in cands:
             est = self._estimate(m.label, s, w * h)
@@ -187,7 +186,7 @@ class _Runner:
         keyed.sort(key=lambda t: (t[0], t[1]))
         chosen, spent = [], 0.0
         for prio, est, m, s in keyed:
-            cost = est * per_call
+            cost = est * (cfg.warmup + (1 if est > cfg.slow_s else cfg.rounds))
             if prio == 0 or spent + cost <= budget:
                 chosen.append((m, s))
                 spent += cost if cost != float("inf") else 0.0
@@ -259,21 +258,26 @@ class _Runner:
                 calls[name] = call
         peaks: dict[str, int | None] = {}
         ok: dict[str, Callable[[], Any]] = {}
+        caps: dict[str, int] = {}
         sync = synchronizer(cfg.device)
+        first_size = (w, h) == tuple(cfg.sizes[0])
         for name, fn in calls.items():  # warm-up; the first call also measures peak memory
             try:
                 for i in range(cfg.warmup):
+                    t0 = time.perf_counter()
                     if i == 0:
                         _, peaks[name] = peak_call_memory(lambda: (fn(), sync()), cfg.device)
                     else:
                         fn()
                         sync()
+                    if not first_size and time.perf_counter() - t0 > cfg.slow_s:
+                        caps[name] = 1
                 ok[name] = fn
             except Exception as e:  # noqa: BLE001 -- one failed entry is reported, the others still run
                 m, s = keys[name]
                 self.entries.append({"method": m.label, "width": w, "height": h, "spp": s, "status": "error",
                                      "reason": " ".join(str(e).split())[:200]})
-        times = interleaved_times(ok, cfg.rounds, sync=sync)
+        times = interleaved_times(ok, cfg.rounds, sync=sync, max_rounds=caps)
         for name, ts in times.items():
             m, s = keys[name]
             med = statistics.median(ts)
@@ -334,7 +338,7 @@ def run_bench(cfg: BenchConfig, log: Log = _stderr) -> dict[str, Any]:
         "machine": info,
         "config": {"sizes": [list(s) for s in cfg.sizes], "spp": list(cfg.spp), "warmup": cfg.warmup,
                    "rounds": cfg.rounds, "budget_s": cfg.budget_s, "fast": cfg.fast, "device": cfg.device,
-                   "precision": runner.precision,
+                   "precision": runner.precision, "slow_s": cfg.slow_s,
                    "methods": [m.label for m in runner.methods], "train": {"batch": cfg.train_batch,
                    "crop": cfg.train_crop, "spp": cfg.train_spp, "steps": cfg.train_steps}},
         "memory_method": MEMORY_METHOD if not cfg.device.startswith("cuda") else "torch.cuda.max_memory_allocated above the allocation before the call",

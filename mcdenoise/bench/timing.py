@@ -40,17 +40,21 @@ def interleaved_times(
     *,
     sync: Callable[[], None] = lambda: None,
     on_round: Callable[[int], None] | None = None,
+    max_rounds: Mapping[str, int] | None = None,
 ) -> dict[str, list[float]]:
     """Time every function once per round, round-robin: ``{name: [seconds per round]}``.
 
     Interleaving puts a burst of background load on every method alike instead of on whichever
     method happened to run during it (the shared 2-core machine). ``sync`` runs before the clock
     starts and before it stops, so queued GPU work is counted in the call that queued it.
-    Warm-up is the caller's (an untimed round).
+    Warm-up is the caller's (an untimed round). ``max_rounds`` caps the rounds of some
+    functions (slow ones): they take part in the first rounds only, still interleaved.
     """
     out: dict[str, list[float]] = {name: [] for name in fns}
     for r in range(rounds):
         for name, fn in fns.items():
+            if max_rounds is not None and r >= max_rounds.get(name, rounds):
+                continue
             sync()
             t0 = time.perf_counter()
             fn()
