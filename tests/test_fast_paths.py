@@ -200,3 +200,29 @@ def test_bfloat16_shipped_weights_close_to_float32(name: str) -> None:
     want, got = denoise_batch(ref, batch), denoise_batch(low, batch)
     rel = (((got - want) ** 2) / (want**2 + 1e-2)).mean().item()
     assert rel < 1e-3, f"{name}: bfloat16 differs from float32 by relMSE {rel:.2e}"
+
+
+def _thp_mode() -> str | None:
+    try:
+        text = open("/sys/kernel/mm/transparent_hugepage/enabled").read()
+    except OSError:
+        return None
+    return text[text.index("[") + 1 : text.index("]")]
+
+
+@pytest.mark.skipif(_thp_mode() not in ("madvise", "always"), reason="needs Linux transparent huge pages")
+def test_import_puts_large_tensors_on_huge_pages() -> None:
+    """Bug caught: the huge-page switch set after torch's first large allocation (or dropped), so
+    every fresh per-sample tensor is written at page-fault speed again (SBMC 26 % slower)."""
+    import subprocess
+    import sys
+
+    code = ("import mcdenoise, torch; t = torch.empty(64 << 20, dtype=torch.uint8); t.fill_(1); "
+            "print(next(int(l.split()[1]) for l in open('/proc/self/smaps_rollup') if l.startswith('AnonHugePages')))")
+    env = {k: v for k, v in __import__("os").environ.items() if k != "THP_MEM_ALLOC_ENABLE"}
+    on = int(subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True).stdout)
+    assert on >= 32 << 10, f"only {on} KiB of the 64 MiB tensor is on huge pages"
+    if _thp_mode() == "madvise":  # off: torch does not ask for huge pages, the kernel gives none
+        off = int(subprocess.run([sys.executable, "-c", code], env={**env, "THP_MEM_ALLOC_ENABLE": "0"},
+                                 capture_output=True, text=True, check=True).stdout)
+        assert off < on
