@@ -146,6 +146,27 @@ def test_effective_albedo_rule() -> None:
     assert ((demod >= irr_s - 1e-6) & (demod <= sky + 1e-6)).all(), demod
 
 
+def test_effective_albedo_coverage_is_the_clamped_normal_length() -> None:
+    """The coverage |normal| is written out as sqrt(n0^2 + n1^2 + n2^2) (linalg.vector_norm was
+    as slow as the whole importance filter on the CPU).  Catches a channel used twice or left
+    out, a missing root, a lost clamp to [0, 1] (normal lengths up to 1.5 here), and NaN or inf
+    gradients at zero normals (sky): float64 against the norm-based rule."""
+    g = torch.Generator().manual_seed(3)
+    normal = torch.randn(2, 3, 9, 8, generator=g, dtype=torch.float64)
+    normal = normal / normal.norm(dim=1, keepdim=True) * 1.5 * torch.rand(2, 1, 9, 8, generator=g, dtype=torch.float64)
+    normal[..., :2, :] = 0  # misses
+    normal[0, :, 3, 3] = torch.tensor([0.0, 0.0, 1e-160], dtype=torch.float64)  # underflows when squared
+    albedo = torch.rand(2, 3, 9, 8, generator=g, dtype=torch.float64)
+    coverage = normal.norm(dim=1, keepdim=True).clamp(0, 1)
+    want = torch.maximum(albedo + (1 - coverage), 1 - (albedo + (1 - coverage)) / 0.05)
+    n = normal.clone().requires_grad_()
+    got = effective_albedo(albedo, n, 0.05)
+    torch.testing.assert_close(got, want, rtol=1e-14, atol=1e-14)
+    got.sum().backward()
+    assert torch.isfinite(n.grad).all()
+    assert (n.grad[..., :2, :] == 0).all()
+
+
 def _sky_over_object(size: int = 24, coverage: float | None = None) -> dict[str, torch.Tensor]:
     """Sky (albedo 0, normal 0, depth 0, radiance 0.67) over an object (albedo 0.1, radiance 0.05),
     as in issue 8 bug 4; ``coverage``: the object's share of one antialiased row at the edge."""

@@ -212,3 +212,177 @@ def test_importance_bad_input() -> None:
         importance_filter(torch.zeros(3, 8, 8), torch.zeros(2, 1, 8, 8), 3)
     with pytest.raises(ValueError, match=r"fusion_logits must have shape \(B, N=6, H, W\)"):
         fused_importance_filter(x, torch.zeros(2, 6, 8, 8), torch.zeros(2, 5, 8, 8))
+
+
+# --- One shift per image, box sums of exp(I - M), exact fallback (issue: WSKP CPU speed) ---------
+
+from mcdenoise.ops import importance as imp_mod  # noqa: E402
+
+PAPER = (3, 5, 7, 9, 11, 13)
+
+
+@pytest.fixture
+def count_exact(monkeypatch: pytest.MonkeyPatch) -> list[int]:
+    """Counts the calls of the exact per-window-shifted fallback."""
+    calls = [0]
+    exact = imp_mod._filter_exact
+
+    def counted(*args: object) -> torch.Tensor:
+        calls[0] += 1
+        return exact(*args)
+
+    monkeypatch.setattr(imp_mod, "_filter_exact", counted)
+    return calls
+
+
+@pytest.fixture
+def no_exact(monkeypatch: pytest.MonkeyPatch) -> None:
+    def forbidden(*args: object) -> torch.Tensor:
+        raise AssertionError("the exact fallback ran on ordinary input")
+
+    monkeypatch.setattr(imp_mod, "_filter_exact", forbidden)
+
+
+def _fast_both_paths(x: torch.Tensor, imp: torch.Tensor, size: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """The no-autograd (banded on the CPU) and the autograd (whole-tensor) fast paths."""
+    with torch.no_grad():
+        banded = importance_filter(x, imp, size, impl="fast")
+    whole = importance_filter(x.requires_grad_(), imp, size, impl="fast").detach()
+    x.requires_grad_(False)
+    return banded, whole
+
+
+@pytest.mark.parametrize("rows", [3, 8, 64])
+@pytest.mark.parametrize("size", [3, 5, 7, 9, 11, 13, 15])
+def test_one_shift_matches_reference_float64(monkeypatch: pytest.MonkeyPatch, no_exact: None, rows: int, size: int) -> None:
+    """Catches a wrong offset in the power-of-two box sums (13 = 8 + 4 + 1) or in a band's halo
+    rows and zero margins (a band of 3 rows has halos wider than itself): both fast paths equal
+    the unfold + softmax reference in float64, without the fallback."""
+    monkeypatch.setattr(imp_mod, "_band_rows", lambda h, w: rows)
+    g = torch.Generator().manual_seed(size * 100 + rows)
+    x = torch.randn(2, 3, 19, 23, generator=g, dtype=F64)
+    imp = 4 * torch.randn(2, 1, 19, 23, generator=g, dtype=F64)
+    ref = importance_filter_reference(x, imp, size)
+    for out in _fast_both_paths(x, imp, size):
+        torch.testing.assert_close(out, ref, rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("rows", [4, 64])
+@pytest.mark.parametrize("sizes", [PAPER, (7, 1, 3)])
+def test_fused_one_shift_matches_reference_float64(monkeypatch: pytest.MonkeyPatch, no_exact: None, rows: int, sizes: tuple[int, ...]) -> None:
+    """Catches a mix-up of maps, fusion weights or per-size halos in the fused banded pass (N
+    filters in one loop over bands; unsorted sizes and the identity size 1 included)."""
+    monkeypatch.setattr(imp_mod, "_band_rows", lambda h, w: rows)
+    g = torch.Generator().manual_seed(rows)
+    n = len(sizes)
+    x = torch.randn(2, 3, 17, 21, generator=g, dtype=F64)
+    imp = 3 * torch.randn(2, n, 17, 21, generator=g, dtype=F64)
+    fl = torch.randn(2, n, 17, 21, generator=g, dtype=F64)
+    ref = fused_importance_filter(x, imp, fl, sizes, impl="reference")
+    with torch.no_grad():
+        fast = fused_importance_filter(x, imp, fl, sizes, impl="fast")
+    torch.testing.assert_close(fast, ref, rtol=1e-12, atol=1e-12)
+
+
+def _dim_patch(h: int, w: int, rows: slice, cols: slice, depth: float, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
+    g = torch.Generator().manual_seed(seed)
+    x = torch.rand(2, 3, h, w, generator=g, dtype=F64)
+    imp = 5 * torch.rand(2, 1, h, w, generator=g, dtype=F64)
+    imp[..., rows, cols] -= depth
+    return x, imp
+
+
+@pytest.mark.parametrize("rows", [5, 64])
+@pytest.mark.parametrize("patch", [(slice(12, None), slice(None)), (slice(9, 16), slice(3, 9)), (slice(0, 4), slice(None))])
+def test_fallback_where_windows_are_far_below_the_image_max_float64(
+    monkeypatch: pytest.MonkeyPatch, count_exact: list[int], rows: int, patch: tuple[slice, slice]
+) -> None:
+    """Importances 1000 below the image maximum (the lower half, a 7 x 6 patch, the top 4 rows):
+    exp(I - M) underflows there even in float64 (e^-1000), so the windows wholly inside
+    (k = 5) would be 0/0 with an image-wide shift alone.  Catches a missing or misplaced fallback
+    (crop, halo, band rows of its mask): the result equals the reference, and the fallback ran."""
+    monkeypatch.setattr(imp_mod, "_band_rows", lambda h, w: rows)
+    rs, cs = patch
+    x, imp = _dim_patch(24, 18, rs, cs, 1000.0, 7)
+    ref = importance_filter_reference(x, imp, 5)
+    for out in _fast_both_paths(x, imp, 5):
+        torch.testing.assert_close(out, ref, rtol=1e-12, atol=1e-12)
+    assert count_exact[0] == 2  # once per path
+
+
+def test_fused_fallback_in_two_separate_bands_float64(monkeypatch: pytest.MonkeyPatch, count_exact: list[int]) -> None:
+    """Two dim 4 x 4 patches in bands far apart (rows of 4), in the size-3 map of six: catches a
+    fallback that patches only the first flagged band or offsets the second."""
+    monkeypatch.setattr(imp_mod, "_band_rows", lambda h, w: 4)
+    g = torch.Generator().manual_seed(8)
+    x = torch.rand(1, 3, 30, 12, generator=g, dtype=F64)
+    imp = 2 * torch.randn(1, 6, 30, 12, generator=g, dtype=F64)
+    imp[:, 0, 2:6, 1:5] -= 2000
+    imp[:, 0, 23:27, 7:11] -= 2000
+    fl = torch.randn(1, 6, 30, 12, generator=g, dtype=F64)
+    ref = fused_importance_filter(x, imp, fl, impl="reference")
+    with torch.no_grad():
+        fast = fused_importance_filter(x, imp, fl, impl="fast")
+    torch.testing.assert_close(fast, ref, rtol=1e-12, atol=1e-12)
+    assert count_exact[0] == 1
+
+
+@pytest.mark.parametrize("grad", [False, True])
+def test_float32_importance_spanning_1e3_is_finite(count_exact: list[int], grad: bool) -> None:
+    """float32 importances uniform over [0, 1000]: most windows lie far below the image maximum
+    (exp(I - M) is 0 in float32).  Catches 0/0 = NaN or inf there, forward and backward."""
+    g = torch.Generator().manual_seed(9)
+    x = torch.rand(1, 3, 40, 40, generator=g)
+    imp = 1000 * torch.rand(1, 1, 40, 40, generator=g)
+    xi, ii = x.clone().requires_grad_(grad), imp.clone().requires_grad_(grad)
+    with torch.set_grad_enabled(grad):
+        out = importance_filter(xi, ii, 7, impl="fast")
+    assert torch.isfinite(out).all() and count_exact[0] == 1
+    ref = importance_filter_reference(x.double(), imp.double(), 7)
+    torch.testing.assert_close(out.double(), ref, rtol=1e-5, atol=1e-5)
+    if grad:
+        out.square().sum().backward()
+        assert torch.isfinite(xi.grad).all() and torch.isfinite(ii.grad).all()
+    fl = torch.randn(1, 6, 40, 40, generator=g)
+    imp6 = 1000 * torch.rand(1, 6, 40, 40, generator=g)
+    with torch.set_grad_enabled(grad):
+        fused = fused_importance_filter(x, imp6.requires_grad_(grad), fl, impl="fast")
+    assert torch.isfinite(fused).all()
+    torch.testing.assert_close(fused.double(), fused_importance_filter(x.double(), imp6.double(), fl.double(), impl="reference"), rtol=1e-5, atol=1e-5)
+
+
+@pytest.mark.parametrize("dim_rows", [None, slice(0, 3), slice(None)])
+def test_one_shift_gradcheck(count_exact: list[int], dim_rows: slice | None) -> None:
+    """float64 gradcheck of the autograd fast path: ordinary importances, the first rows 1000
+    below the rest (fallback on part of the image: the torch.where must pass gradients to both
+    sides and no inf/NaN from the replaced denominators), and all of it (fallback everywhere
+    except the windows near the maximum)."""
+    g = torch.Generator().manual_seed(10)
+    x = torch.randn(1, 2, 6, 5, generator=g, dtype=F64)
+    imp = 3 * torch.rand(1, 1, 6, 5, generator=g, dtype=F64)
+    if dim_rows is not None:
+        n = imp[..., dim_rows, :].shape[-2]  # each dim row 1000 below the one above it
+        imp[..., dim_rows, :] -= 1000 * torch.arange(1, n + 1, dtype=F64)[:, None]
+    assert torch.autograd.gradcheck(
+        lambda a, b: importance_filter(a, b, 3, impl="fast"), (x.requires_grad_(), imp.requires_grad_())
+    )
+    assert (count_exact[0] > 0) == (dim_rows is not None)
+
+
+def test_fallback_not_taken_for_ordinary_input(no_exact: None) -> None:
+    """Catches a fallback threshold that fires on ordinary input (the slow exact path would run
+    on every frame): float32 importances spread over 50 and the folded wskp paper model run
+    without it, with and without autograd."""
+    from mcdenoise.models.registry import build_model, synthetic_batch
+
+    g = torch.Generator().manual_seed(11)
+    x = torch.rand(1, 3, 48, 40, generator=g)
+    imp = 50 * torch.rand(1, 6, 48, 40, generator=g)
+    fl = torch.randn(1, 6, 48, 40, generator=g)
+    with torch.no_grad():
+        fused_importance_filter(x, imp, fl)
+        importance_filter(x, imp[:, :1], 13)
+    fused_importance_filter(x, imp.requires_grad_(), fl).sum().backward()
+    model = build_model("wskp", "paper").reparameterize()
+    with torch.inference_mode():
+        assert torch.isfinite(model(synthetic_batch(model, height=40, width=48))).all()

@@ -73,10 +73,11 @@ def effective_albedo(albedo: torch.Tensor, normal: torch.Tensor, threshold: floa
     # |normal| written out: torch.linalg.vector_norm over the 3 channels cost as much as the whole
     # importance filter on the CPU (79 ms at 960x540).  Clamping the squared norm to [tiny, 1]
     # before the root equals clamp(|n|, 0, 1) up to sqrt(tiny) ~ 1e-19 and keeps the gradient
-    # finite (0) at zero normals, as norm's is.
+    # finite (0) at zero normals, as norm's is.  (Both bounds floats: the ONNX exporter fails on
+    # clamp(float, int).)
     n0, n1, n2 = normal[:, 0:1], normal[:, 1:2], normal[:, 2:3]
     squared = torch.addcmul(torch.addcmul(n0 * n0, n1, n1), n2, n2)
-    coverage = squared.clamp(torch.finfo(squared.dtype).tiny, 1).sqrt()
+    coverage = squared.clamp(torch.finfo(squared.dtype).tiny, 1.0).sqrt()
     a = albedo + (1 - coverage)
     return torch.maximum(a, 1 - a / threshold)
 
