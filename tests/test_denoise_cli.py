@@ -62,7 +62,7 @@ def test_blender_exr_denoises(tmp_path, wskp, capfd):
     the tiled CLI output must equal the model on the whole image."""
     src, out = tmp_path / "render.exr", tmp_path / "clean.exr"
     _blender_exr(src)
-    rc = main(["denoise", str(src), "-o", str(out), "--model", wskp, "--tile", "16",
+    rc = main(["denoise", str(src), "-o", str(out), "--model", wskp, "--tile", "16", "--precision", "float32",
                "--preview", str(tmp_path / "clean.png")])
     cap = capfd.readouterr()
     assert rc == 0, cap.err
