@@ -335,3 +335,19 @@ def test_model_forward_no_grad_equals_grad_path() -> None:
         a = m(batch)
     b = m(batch).detach()
     torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("h,w,k", [(2, 3, 9), (1, 1, 3), (7, 4, 5), (9, 11, 3)])
+def test_border_mask_equals_broadcast_mask_on_every_band(h: int, w: int, k: int) -> None:
+    """Bug caught: the in-place border mask missing a ring (off-by-one in d), masking interior
+    pixels, or mis-placing the top/bottom rows of a band that starts inside the image; images
+    smaller than the kernel included."""
+    from mcdenoise.models.kpcn import _mask_border_taps_, _mask_out_of_image_taps
+
+    z = torch.randn(2, k * k, h, w, dtype=torch.float64)
+    want = _mask_out_of_image_taps(z, k)
+    for rows in range(1, h + 1):
+        for r0 in range(0, h, rows):
+            band = z[:, :, r0 : r0 + rows].clone()
+            got = _mask_border_taps_(band, k, r0, h)
+            assert torch.equal(got, want[:, :, r0 : r0 + rows]), (rows, r0)

@@ -86,8 +86,10 @@ class BenchConfig:
     """Image sizes ``(width, height)``, smallest first (the first size calibrates the budget)."""
     spp: tuple[int, ...] = (1, 4, 8, 16, 32)
     """Samples per pixel for sample models (pixel models and OIDN get pixel means)."""
-    warmup: int = 1
-    """Untimed calls per entry before timing (the first one also measures peak memory)."""
+    warmup: int = 2
+    """Untimed calls per entry before timing (the first one also measures peak memory). Two: at
+    1080p the first two calls of a model are 1.5-2x slower than the rest (fresh 2 MiB pages);
+    an entry whose first call exceeds ``slow_s`` stops warming up after it."""
     rounds: int = 3
     """Timed rounds; each entry's figure is the median over rounds."""
     slow_s: float = 8.0
@@ -121,7 +123,7 @@ class BenchConfig:
 
 def quick_config(**overrides: object) -> BenchConfig:
     """``--quick``: 256x256 only, 1 and 8 spp, two rounds, a two-step training figure."""
-    cfg = BenchConfig(methods=[parse_method(t) for t in QUICK_METHODS], sizes=((256, 256),), spp=(1, 8), rounds=2,
+    cfg = BenchConfig(methods=[parse_method(t) for t in QUICK_METHODS], sizes=((256, 256),), spp=(1, 8), rounds=2, warmup=1,
                       train_batch=4, train_crop=32, train_steps=1, peak_conv=(64, 128))
     for k, v in overrides.items():
         setattr(cfg, k, v)

@@ -186,7 +186,7 @@ class _Runner:
         keyed.sort(key=lambda t: (t[0], t[1]))
         chosen, spent = [], 0.0
         for prio, est, m, s in keyed:
-            cost = est * (cfg.warmup + (1 if est > cfg.slow_s else cfg.rounds))
+            cost = est * ((1 + 1) if est > cfg.slow_s else (cfg.warmup + cfg.rounds))
             if prio == 0 or spent + cost <= budget:
                 chosen.append((m, s))
                 spent += cost if cost != float("inf") else 0.0
@@ -271,7 +271,8 @@ class _Runner:
                         fn()
                         sync()
                     if not first_size and time.perf_counter() - t0 > cfg.slow_s:
-                        caps[name] = 1
+                        caps[name] = 1  # a slow call: one more warm-up would cost more than it settles
+                        break
                 ok[name] = fn
             except Exception as e:  # noqa: BLE001 -- one failed entry is reported, the others still run
                 m, s = keys[name]

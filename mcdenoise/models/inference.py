@@ -74,9 +74,13 @@ def convert_layout(t: torch.Tensor, dtype: torch.dtype, memory_format: torch.mem
                    band_bytes: int = 2 << 20) -> torch.Tensor:
     """``t.to(dtype, memory_format=...)`` for a 4-D tensor, copied in row bands of about
     ``band_bytes``: a whole-image NCHW <-> NHWC copy misses the cache on every element (an
-    81-channel 960x540 kernel-logit tensor took 235 ms), a band at a time stays in it (76 ms)."""
+    81-channel 1080p bfloat16 tensor: 700 ms), a band at a time stays in it (115 ms). A narrowing
+    cast runs first, in the source layout (element-wise, fast), so the transposing copy moves
+    the smaller elements (27 channels at 1080p to bfloat16 channels_last: 91 -> 49 ms)."""
     if t.dim() != 4 or t.is_contiguous(memory_format=memory_format):
         return t.to(dtype)
+    if torch.empty((), dtype=dtype).element_size() < t.element_size():
+        t = t.to(dtype)
     b, c, h, w = t.shape
     out = torch.empty((b, c, h, w), dtype=dtype, device=t.device, memory_format=memory_format)
     if t.device.type != "cpu":

@@ -156,21 +156,42 @@ def _mask_out_of_image_taps(z: torch.Tensor, k: int, row0: int = 0, height: int 
     return (z.view(b, k, k, h, w) + row + col).view(b, k * k, h, w)
 
 
+def _mask_border_taps_(z: torch.Tensor, k: int, row0: int, height: int) -> torch.Tensor:
+    """In place, the same -inf as :func:`_mask_out_of_image_taps` on a contiguous (B, K*K, h, W)
+    band of rows ``row0 ..``, written only where it lands: the r columns at each side and the
+    band's rows within r of the image's top or bottom (interior pixels are not touched)."""
+    b, _, h, w = z.shape
+    r = k // 2
+    z5 = z.view(b, k, k, h, w)
+    neg = float("-inf")
+    for d in range(1, r + 1):  # tap offset d to the left/right/up/down reads outside within d pixels
+        z5[:, :, r - d, :, : min(d, w)] = neg  # dx = -d: columns x < d
+        z5[:, :, r + d, :, max(0, w - d) :] = neg  # dx = +d: columns x >= W - d
+        top = max(0, min(h, d - row0))  # rows y (global row0 + y) < d
+        if top:
+            z5[:, r - d, :, :top] = neg
+        bottom = max(0, min(h, row0 + h - (height - d)))  # rows with row0 + y >= height - d
+        if bottom:
+            z5[:, r + d, :, h - bottom :] = neg
+    return z
+
+
 def _apply_kernels_banded(color: torch.Tensor, logits: torch.Tensor, k: int, band_bytes: int = 8 << 20) -> torch.Tensor:
     """Inference form of ``gather(color, softmax(mask(logits)))``, one row band at a time.
 
     color (B, 3, H, W) float32; logits (B, K*K, H, W) in any dtype and memory format (a bfloat16
     channels_last trunk output is converted here band by band, in float32). Every band's mask,
     softmax and gather stay in the cache instead of streaming three K*K x H x W tensors through
-    memory; equal to the whole-image path (tests/test_model_kpcn.py).
+    memory, and the mask touches only border pixels; equal to the whole-image path
+    (tests/test_model_kpcn.py).
     """
     b, _, h, w = color.shape
     out = torch.empty_like(color)
     rows = max(1, band_bytes // max(1, b * k * k * w * 4))
     for r0 in range(0, h, rows):
         r1 = min(h, r0 + rows)
-        zb = logits[:, :, r0:r1].to(color.dtype, memory_format=torch.contiguous_format)
-        wb = torch.softmax(_mask_out_of_image_taps(zb, k, r0, h), dim=1)
+        zb = logits[:, :, r0:r1].to(color.dtype, memory_format=torch.contiguous_format, copy=True)
+        wb = torch.softmax(_mask_border_taps_(zb, k, r0, h), dim=1)
         out[:, :, r0:r1] = gather_rows(color, wb, r0)
     return out
 
