@@ -186,13 +186,20 @@ def _apply_kernels_banded(color: torch.Tensor, logits: torch.Tensor, k: int, ban
     (tests/test_model_kpcn.py).
     """
     b, _, h, w = color.shape
+    kk = k * k
     out = torch.empty_like(color)
-    rows = max(1, band_bytes // max(1, b * k * k * w * 4))
+    rows = max(1, min(h, band_bytes // max(1, b * kk * w * 4)))
+    # One band buffer for every band, softmax in place: fresh 8 MB allocations per band cost
+    # more than the work on them once large allocations are on huge pages (mcdenoise/__init__.py).
+    buf = torch.empty(b * kk * rows * w, dtype=color.dtype, device=color.device)
     for r0 in range(0, h, rows):
         r1 = min(h, r0 + rows)
-        zb = logits[:, :, r0:r1].to(color.dtype, memory_format=torch.contiguous_format, copy=True)
-        wb = torch.softmax(_mask_border_taps_(zb, k, r0, h), dim=1)
-        out[:, :, r0:r1] = gather_rows(color, wb, r0)
+        zb = buf[: b * kk * (r1 - r0) * w].view(b, kk, r1 - r0, w)
+        zb.copy_(logits[:, :, r0:r1])
+        _mask_border_taps_(zb, k, r0, h)
+        zb.sub_(zb.amax(dim=1, keepdim=True)).exp_()  # the centre tap is in the image: max finite
+        zb.div_(zb.sum(dim=1, keepdim=True))
+        out[:, :, r0:r1] = gather_rows(color, zb, r0)
     return out
 
 
