@@ -75,7 +75,8 @@ def markdown(res: dict[str, Any], command: str = "") -> str:
         f"Median of {c['rounds']} interleaved rounds after {c['warmup']} warm-up call(s)"
         f"{slow}; fast inference paths "
         f"{'on' if c['fast'] else 'off'}, convolution trunks in {c.get('precision', 'float32')}. Peak memory: {res['memory_method']}. Machine peak: a 3x3 convolution, "
-        f"{pk['channels']} channels at {pk['side']}x{pk['side']}, ran at **{pk['gflops']:.1f} GFLOP/s**.",
+        f"{pk['channels']} channels at {pk['side']}x{pk['side']}{' in ' + pk['precision'] if pk.get('precision') else ''}, "
+        f"ran at **{pk['gflops']:.1f} GFLOP/s**.",
         "",
     ]
     sizes = [tuple(s) for s in c["sizes"]]

@@ -73,12 +73,16 @@ def _available_bytes() -> int:
         return 8 << 30
 
 
-def peak_conv_gflops(channels: int, side: int, device: str, repeats: int = 5) -> float:
+def peak_conv_gflops(channels: int, side: int, device: str, repeats: int = 5, precision: str = "float32") -> float:
     """GFLOP/s of one large 3x3 convolution ``(1, channels, side, side)``: the machine's practical
-    peak for the layers our models are made of (a multiply-add counts 2)."""
+    peak for the layers our models are made of (a multiply-add counts 2). ``bfloat16``: in
+    bfloat16 and channels_last, as the models' convolution trunks then run."""
     g = torch.Generator().manual_seed(0)
     x = torch.randn((1, channels, side, side), generator=g).to(device)
     w = torch.randn((channels, channels, 3, 3), generator=g).to(device) * 0.01
+    if precision == "bfloat16":
+        x = x.to(torch.bfloat16, memory_format=torch.channels_last)
+        w = w.to(torch.bfloat16, memory_format=torch.channels_last)
     flops = 2.0 * channels * channels * 9 * side * side
     sync = synchronizer(device)
 
@@ -319,8 +323,9 @@ def run_bench(cfg: BenchConfig, log: Log = _stderr) -> dict[str, Any]:
     info = machine_info(cfg.device)
     log(f"bench on {info['cpu']} ({info['cores']} cores, {info['torch_threads']} torch threads), device {cfg.device}, "
         f"precision {resolve_precision(cfg.precision, cfg.device) if cfg.fast else 'float32'}")
-    gflops = peak_conv_gflops(cfg.peak_conv[0], cfg.peak_conv[1], cfg.device)
-    log(f"peak 3x3 conv {cfg.peak_conv[0]} channels: {gflops:.1f} GFLOP/s")
+    precision = resolve_precision(cfg.precision, cfg.device) if cfg.fast else "float32"
+    gflops = peak_conv_gflops(cfg.peak_conv[0], cfg.peak_conv[1], cfg.device, precision=precision)
+    log(f"peak 3x3 conv {cfg.peak_conv[0]} channels ({precision}): {gflops:.1f} GFLOP/s")
     runner = _Runner(cfg, log)
     runner.run()
     training = []
@@ -343,7 +348,7 @@ def run_bench(cfg: BenchConfig, log: Log = _stderr) -> dict[str, Any]:
                    "methods": [m.label for m in runner.methods], "train": {"batch": cfg.train_batch,
                    "crop": cfg.train_crop, "spp": cfg.train_spp, "steps": cfg.train_steps}},
         "memory_method": MEMORY_METHOD if not cfg.device.startswith("cuda") else "torch.cuda.max_memory_allocated above the allocation before the call",
-        "peak_conv": {"channels": cfg.peak_conv[0], "side": cfg.peak_conv[1], "gflops": gflops},
+        "peak_conv": {"channels": cfg.peak_conv[0], "side": cfg.peak_conv[1], "gflops": gflops, "precision": precision},
         "parameters": params,
         "entries": runner.entries,
         "training": training,
