@@ -137,10 +137,10 @@ def test_cli_bench_json_out(tmp_path, capsys) -> None:
     assert "unknown model" in capsys.readouterr().err
 
 
-@pytest.mark.slow
 @needs_oidn
 def test_quick_bench_under_two_minutes(tmp_path) -> None:
-    """Bug caught: `--quick` growing past the CI budget of 2 minutes on 2 cores."""
+    """Bug caught: `--quick` growing past the CI budget of 2 minutes on 2 cores, or failing on the
+    real target models (CI runs it: ~10 s)."""
     import time
 
     t0 = time.perf_counter()

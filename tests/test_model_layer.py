@@ -434,3 +434,22 @@ def test_gather_form_matches_equations(compositing: str) -> None:
             want = want + t * f[:, :3] / f[:, 4:5]
             t = t * (1 - f[:, 3:4] / f[:, 4:5])
     assert rel_diff(model._filter(logits, l_rad, l_w, l_n), want) <= 1e-10
+
+
+def test_sample_weighted_sum_equals_einsum_and_inference_equals_training_path() -> None:
+    """Catches: the inference-only per-layer sample sum (a loop of multiply-adds replacing
+    einsum) summing the wrong sample or layer, or the no_grad forward of a layer model drifting
+    from the autograd (einsum) forward; float64, non-contiguous inputs as the banded path has."""
+    from mcdenoise.models.layer import _sample_weighted_sum
+
+    g = torch.Generator().manual_seed(4)
+    w = torch.rand(2, 5, 3, 9, 7, generator=g, dtype=torch.float64)
+    x = torch.randn(2, 5, 4, 11, 7, generator=g, dtype=torch.float64)[..., 1:10, :]
+    torch.testing.assert_close(_sample_weighted_sum(w, x), torch.einsum("bslhw,bschw->blchw", w, x), rtol=1e-12, atol=1e-12)
+    torch.manual_seed(0)
+    model = build_model("layer_optimized", "small").double().eval()
+    batch = synthetic_batch(model, spp=3, height=9, width=8, dtype=torch.float64)
+    with torch.no_grad():
+        fast = model(batch)
+    ref = model(batch).detach()
+    assert rel_diff(fast, ref) <= 1e-12

@@ -97,13 +97,15 @@ def run(args: argparse.Namespace) -> int:
         res = run_bench(cfg)
         command = "mcdenoise bench " + " ".join(shlex.quote(a) for a in sys.argv[2:]) if sys.argv[1:2] == ["bench"] else ""
         res["command"] = command
+    from mcdenoise.io.safety import atomic_file
+
     if args.out is not None and args.out.suffix == ".json":  # first: the tables can be remade from it
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(json.dumps(res, indent=1) + "\n")
+        with atomic_file(args.out) as tmp:
+            tmp.write_text(json.dumps(res, indent=1) + "\n")
     text = markdown(res, command)
     if args.out is not None and args.out.suffix != ".json":
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(text + "\n")
+        with atomic_file(args.out) as tmp:
+            tmp.write_text(text + "\n")
     if args.docs is not None:
         from mcdenoise.eval.docblock import replace_block
 

@@ -159,6 +159,20 @@ def _small_optimized(**kw: object) -> LayerConfig:
     return LayerConfig(**common, kernel_widths=(8,), kernel_size=5, hierarchical=True, **kw)  # type: ignore[arg-type]
 
 
+def _sample_weighted_sum(w: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    """``einsum("bslhw,bschw->blchw", w, x)`` as S x L multiply-adds of whole images: w (B, S, L,
+    H, W), x (B, S, C, H, W) -> (B, L, C, H, W). Inference only. einsum lowers this to a bmm
+    batched over pixels (2x32 @ 32x8 matrices), and on the row-band slices of the banded path it
+    copied every pixel's matrices one by one (65k clones per band: 32 spp cost 5-8x 16 spp)."""
+    b, s, nl = w.shape[:3]
+    out = x.new_zeros((b, nl, x.shape[2], *x.shape[-2:]))
+    for layer in range(nl):
+        acc = out[:, layer]
+        for i in range(s):
+            acc.addcmul_(x[:, i], w[:, i, layer : layer + 1])
+    return out
+
+
 class LayerDenoiser(Denoiser):
     """Sample-partitioning layer denoiser.
 
@@ -247,8 +261,11 @@ class LayerDenoiser(Denoiser):
         embedding (B, L, E, H, W), all sums over samples (Appendix A, lines 9-17)."""
         s = e.shape[1]
         w = torch.softmax(self.partitioner(e, ctx), dim=2) / s  # (B, S, L, H, W)
-        l_rad = torch.einsum("bslhw,bschw->blchw", w, radiance)
-        l_emb = torch.einsum("bslhw,bschw->blchw", w, e)
+        if torch.is_grad_enabled():
+            l_rad = torch.einsum("bslhw,bschw->blchw", w, radiance)
+            l_emb = torch.einsum("bslhw,bschw->blchw", w, e)
+        else:
+            l_rad, l_emb = _sample_weighted_sum(w, radiance), _sample_weighted_sum(w, e)
         l_w = w.sum(dim=1).unsqueeze(2)  # (B, L, 1, H, W)
         # A sample in layer k makes layers 0..k "see through" to it: n_j = sum_{k >= j} w_k.
         l_n = l_w.flip(1).cumsum(1).flip(1)
