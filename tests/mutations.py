@@ -80,10 +80,10 @@ class Mutation:
     extra_tests: tuple[str, ...] = ()
 
 
-SBMC, LAYER, KPCN, WSKP, WSKP_MR, BLOCKS = (
-    f"mcdenoise/models/{m}.py" for m in ("sbmc", "layer", "kpcn", "wskp", "wskp_mr", "blocks")
+SBMC, LAYER, LAYER_CONFIG, KPCN, WSKP, WSKP_MR, BLOCKS = (
+    f"mcdenoise/models/{m}.py" for m in ("sbmc", "layer", "layer_config", "kpcn", "wskp", "wskp_mr", "blocks")
 )
-KERNELS, IMPORTANCE, TEMPORAL = (f"mcdenoise/ops/{m}.py" for m in ("kernels", "importance", "temporal"))
+KERNELS, IMPORTANCE, TEMPORAL = (f"mcdenoise/ops/{m}.py" for m in ("kernels", "importance_fast", "temporal"))
 
 #: The mutations of issue 8 item 13 (each passed the whole suite when the audit ran), in its order.
 #: Where the issue names no model, each model that has the mechanism gets its own mutation.
@@ -143,9 +143,9 @@ MUTATIONS: tuple[Mutation, ...] = (
         "layer U-Net one level shallower (the coarsest level of the paper preset removed)",
         "layer",
         (
-            Edit(LAYER, "= ((64, 64), (128,), (256,), (512,), (512,))", "= ((64, 64), (128,), (256,), (512,))"),
+            Edit(LAYER_CONFIG, "= ((64, 64), (128,), (256,), (512,), (512,))", "= ((64, 64), (128,), (256,), (512,))"),
             Edit(
-                LAYER,
+                LAYER_CONFIG,
                 "= ((512, 512), (256, 256), (128, 128), (128, 128), (128, 128))",
                 "= ((256, 256), (128, 128), (128, 128), (128, 128))",
             ),

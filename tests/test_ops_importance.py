@@ -216,7 +216,7 @@ def test_importance_bad_input() -> None:
 
 # --- One shift per image, box sums of exp(I - M), exact fallback (issue: WSKP CPU speed) ---------
 
-from mcdenoise.ops import importance as imp_mod  # noqa: E402
+from mcdenoise.ops import importance_fast as imp_mod  # noqa: E402  (the fast path's internals)
 
 PAPER = (3, 5, 7, 9, 11, 13)
 

@@ -1,0 +1,126 @@
+"""Configuration and presets of the layer-embedding denoisers (``layer``, ``layer_weighted``,
+``layer_optimized``; the model is :mod:`mcdenoise.models.layer`). Split from ``layer.py`` by size.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+__all__ = ["LayerConfig", "LAYER_CHANNELS"]
+
+#: Per-sample channels (Sec. 3 "Per-sample Processing": normal, depth, albedo, specular, roughness,
+#: lens position, time; motion vectors are per pixel in our format, so sub-pixel position stands in).
+#: With the derived circle of confusion this makes 20 floats per sample, as in the paper.
+LAYER_CHANNELS: tuple[str, ...] = (
+    "radiance",
+    "specular",
+    "albedo",
+    "normal",
+    "depth",
+    "roughness",
+    "lens",
+    "time",
+    "subpixel",
+)
+
+
+@dataclass
+class LayerConfig:
+    """Configuration of :class:`LayerDenoiser` (``layer``, ``layer_weighted``, ``layer_optimized``)."""
+
+    channels: tuple[str, ...] = LAYER_CHANNELS
+    """Per-sample vocabulary channels fed to the sample reducer; must include ``radiance``."""
+    circle_of_confusion: bool = True
+    """Append a per-sample circle-of-confusion feature computed from ``depth`` and the scene's
+    aperture and focus distance (needs ``depth`` in ``channels``)."""
+    layers: int = 2
+    """L, number of layers samples are partitioned into (Sec. 5: 2)."""
+    embed_width: int = 32
+    """Width of the sample embeddings (Appendix B: 32)."""
+    reducer_layers: int = 3
+    """Fully connected layers of the sample reducer (Appendix B: 3)."""
+    context_width: int = 128
+    """Context features produced by the U-Net (Appendix B: 128)."""
+    unet_encoder: tuple[tuple[int, ...], ...] = ((64, 64), (128,), (256,), (512,), (512,))
+    """Conv widths of each U-Net encoder level, finest first. UNVERIFIED: the paper's Fig. 3 (the
+    U-Net layout) is lost in our copy of the paper; these widths are our guess, and they are very
+    likely too wide (this U-Net holds 17.9M of the model's 18.0M parameters and the Sec. 6
+    timing cannot be met with it; see docs/models/layer.md and the ``paper_timed`` preset)."""
+    unet_bottleneck: tuple[int, ...] = (512,)
+    """Conv widths at the U-Net's coarsest level. UNVERIFIED (Fig. 3 lost; see ``unet_encoder``)."""
+    unet_decoder: tuple[tuple[int, ...], ...] = ((512, 512), (256, 256), (128, 128), (128, 128), (128, 128))
+    """Conv widths of each U-Net decoder level, coarsest first. UNVERIFIED (Fig. 3 lost; see
+    ``unet_encoder``)."""
+    partitioner_widths: tuple[int, ...] = (32, 16)
+    """Hidden widths of the sample partitioner; its last layer outputs L logits (Appendix B)."""
+    kernel_widths: tuple[int, ...] = (128, 128)
+    """Hidden widths of the kernel generator; its last layer outputs K*K logits (Appendix B)."""
+    kernel_size: int = 17
+    """Side of each layer's kernel (17 in the paper); 5 for the hierarchical variant."""
+    compositing: str = "alpha"
+    """"alpha": occupancy-tracked front-to-back compositing (Eq. 2-5). "weighted": Eq. 6."""
+    splat: bool = True
+    """Apply layer kernels as splats (the paper, following SBMC) or as gathers."""
+    hierarchical: bool = False
+    """Sec. 6: ``levels`` levels of ``kernel_size`` kernels at full, 1/2, 1/4... resolution (Eq. 10)."""
+    levels: int = 3
+    """Number of levels of the hierarchical variant."""
+
+
+def _paper_layer(**kw: object) -> LayerConfig:
+    return LayerConfig(**kw)  # type: ignore[arg-type]
+
+
+def _paper_optimized(**kw: object) -> LayerConfig:
+    # Sec. 6: kernel generator 128 -> 32 features, U-Net's first two encoder convs at 32 and last
+    # four decoder convs at 64, 3 levels of 5x5 kernels.
+    return LayerConfig(
+        kernel_widths=(32, 32),
+        unet_encoder=((32, 32), (128,), (256,), (512,), (512,)),
+        unet_decoder=((512, 512), (256, 256), (128, 128), (64, 64), (64, 64)),
+        kernel_size=5,
+        hierarchical=True,
+        **kw,  # type: ignore[arg-type]
+    )
+
+
+def _paper_timed_optimized(**kw: object) -> LayerConfig:
+    # Sec. 6 with a U-Net sized to the paper's Table 3: 18.8 ms for the U-Net at 1920x1080 on an
+    # RTX 2080 Ti. At a realistic 10-15 TFLOP/s that is 0.19-0.28 TFLOP per frame, 91-136
+    # kFLOP per pixel; this U-Net costs 113 kFLOP/pixel (0.234 TFLOP/frame, 18.8 ms at 12.4
+    # TFLOP/s), where the unverified ``paper`` widths cost 685 (1.42 TFLOP). Our own choice of
+    # widths, not the paper's (Fig. 3 is lost): 5 levels, one conv per level, 32 wide at full
+    # and half resolution on both sides (the paper's "first two encoder convs at 32"), doubling
+    # towards 128 at the coarsest level. Derivation in docs/models/layer.md.
+    return LayerConfig(
+        kernel_widths=(32, 32),
+        unet_encoder=((32,), (48,), (64,), (96,), (128,)),
+        unet_bottleneck=(128,),
+        unet_decoder=((128,), (96,), (64,), (32,), (32,)),
+        kernel_size=5,
+        hierarchical=True,
+        **kw,  # type: ignore[arg-type]
+    )
+
+
+def _small_common() -> dict:
+    return dict(
+        embed_width=8,
+        reducer_layers=2,
+        context_width=16,
+        unet_encoder=((16,), (24,)),
+        unet_bottleneck=(32,),
+        unet_decoder=((24,), (16,)),
+        partitioner_widths=(8,),
+    )
+
+
+def _small_layer(**kw: object) -> LayerConfig:
+    return LayerConfig(**_small_common(), kernel_widths=(16,), kernel_size=9, **kw)  # type: ignore[arg-type]
+
+
+def _small_optimized(**kw: object) -> LayerConfig:
+    common = _small_common()
+    # Three U-Net levels so that every pyramid level has decoder features at its resolution.
+    common.update(unet_encoder=((8,), (16,), (24,)), unet_bottleneck=(32,), unet_decoder=((24,), (16,), (16,)))
+    return LayerConfig(**common, kernel_widths=(8,), kernel_size=5, hierarchical=True, **kw)  # type: ignore[arg-type]
