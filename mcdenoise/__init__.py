@@ -13,9 +13,9 @@ from typing import Any
 
 # Large tensors on 2 MiB pages (PyTorch's CPU allocator, read once at its first large allocation,
 # so it must be set before torch allocates). Our per-sample tensors are hundreds of MB and fresh
-# each call: on 4 KiB pages a first write is page-fault bound (~2.3 GB/s here); with huge pages
-# SBMC small runs 26 % faster, the layer models 20 % (docs/PERFORMANCE.md). THP_MEM_ALLOC_ENABLE=0
-# in the environment turns it off.
+# each call, and on 4 KiB pages their first write is page-fault bound (figures per model:
+# benchmarks/bench_fast_paths.py --parts thp, in docs/PERFORMANCE.md). THP_MEM_ALLOC_ENABLE=0 in
+# the environment turns it off.
 _os.environ.setdefault("THP_MEM_ALLOC_ENABLE", "1")
 
 __version__ = "0.1.0"

@@ -190,7 +190,8 @@ class _Runner:
         keyed.sort(key=lambda t: (t[0], t[1]))
         chosen, spent = [], 0.0
         for prio, est, m, s in keyed:
-            cost = est * ((1 + 1) if est > cfg.slow_s else (cfg.warmup + cfg.rounds))
+            # A slow entry makes one warm-up call and one timed round (see _group).
+            cost = est * (2 if est > cfg.slow_s else cfg.warmup + cfg.rounds)
             if prio == 0 or spent + cost <= budget:
                 chosen.append((m, s))
                 spent += cost if cost != float("inf") else 0.0
@@ -321,9 +322,9 @@ def run_bench(cfg: BenchConfig, log: Log = _stderr) -> dict[str, Any]:
     """Every measurement of one bench run, as a JSON-ready dict (see module docstring)."""
     t0 = time.perf_counter()
     info = machine_info(cfg.device)
-    log(f"bench on {info['cpu']} ({info['cores']} cores, {info['torch_threads']} torch threads), device {cfg.device}, "
-        f"precision {resolve_precision(cfg.precision, cfg.device) if cfg.fast else 'float32'}")
     precision = resolve_precision(cfg.precision, cfg.device) if cfg.fast else "float32"
+    log(f"bench on {info['cpu']} ({info['cores']} cores, {info['torch_threads']} torch threads), device {cfg.device}, "
+        f"precision {precision}")
     gflops = peak_conv_gflops(cfg.peak_conv[0], cfg.peak_conv[1], cfg.device, precision=precision)
     log(f"peak 3x3 conv {cfg.peak_conv[0]} channels ({precision}): {gflops:.1f} GFLOP/s")
     runner = _Runner(cfg, log)

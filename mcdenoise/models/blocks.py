@@ -45,9 +45,10 @@ class PointwiseConv(nn.Conv2d):
 
     Same parameters and state-dict keys as ``nn.Conv2d(C_in, C_out, 1)``, so weights saved by
     either load into the other. On the CPU oneDNN's 1x1 convolution on NCHW tensors of 8-42
-    channels runs at ~8 GFLOP/s (it was 77 % of SBMC's inference time); ``baddbmm`` over
-    ``(C_out, C_in) @ (C_in, H*W)`` is 2.7-18x faster for the widths our per-sample networks use
-    and computes the same sums (tested against ``F.conv2d`` in float64, gradchecked).
+    channels was most of SBMC's inference time; ``baddbmm`` over ``(C_out, C_in) @ (C_in, H*W)``
+    is 1.3-4x faster for the widths our per-sample networks use (``benchmarks/bench_fast_paths.py
+    --parts pointwise``) and computes the same sums (tested against ``F.conv2d`` in float64,
+    gradchecked).
     """
 
     def __init__(self, in_channels: int, out_channels: int, bias: bool = True) -> None:

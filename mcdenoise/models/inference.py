@@ -19,7 +19,7 @@ tested, not float32 rounding):
   U-Nets, KPCN's branches, WSKP's ImportanceNet) runs in bfloat16 and channels_last, cast once on
   the way in and back to float32 NCHW on the way out; kernel logits are exponentiated, normalised
   and applied in float32. On CPUs with native bfloat16 (AVX512-BF16, AMX) oneDNN runs these
-  convolutions 2.5-4x faster than float32 NCHW; elsewhere it is emulated and slower, so
+  convolutions 2.2-4x faster than float32 NCHW (``benchmarks/bench_fast_paths.py --parts convs``); elsewhere it is emulated and slower, so
   ``"auto"`` picks it only where :func:`native_bfloat16` says so. Off by default: the error it
   adds is measured per shipped model on the test split (docs/PERFORMANCE.md), not assumed.
 
@@ -73,10 +73,11 @@ def resolve_precision(precision: str | None, device: str | torch.device = "cpu")
 def convert_layout(t: torch.Tensor, dtype: torch.dtype, memory_format: torch.memory_format,
                    band_bytes: int = 2 << 20) -> torch.Tensor:
     """``t.to(dtype, memory_format=...)`` for a 4-D tensor, copied in row bands of about
-    ``band_bytes``: a whole-image NCHW <-> NHWC copy misses the cache on every element (an
-    81-channel 1080p bfloat16 tensor: 700 ms), a band at a time stays in it (115 ms). A narrowing
-    cast runs first, in the source layout (element-wise, fast), so the transposing copy moves
-    the smaller elements (27 channels at 1080p to bfloat16 channels_last: 91 -> 49 ms)."""
+    ``band_bytes``: a whole-image NCHW <-> NHWC copy misses the cache on every element, a band at
+    a time stays in it. A narrowing cast runs first, in the source layout (element-wise, fast),
+    so the transposing copy moves the smaller elements. Against a plain ``.to()`` at 1080p
+    (``benchmarks/bench_fast_paths.py --parts layout``): 81 bfloat16 channels_last -> float32
+    NCHW 705 -> 177 ms, 27 float32 NCHW -> bfloat16 channels_last 77 -> 47 ms."""
     if t.dim() != 4 or t.is_contiguous(memory_format=memory_format):
         return t.to(dtype)
     if torch.empty((), dtype=dtype).element_size() < t.element_size():
@@ -99,8 +100,8 @@ class ReducedPrecision(nn.Module):
         super().__init__()
         self.inner = inner.to(dtype=dtype, memory_format=torch.channels_last)
         self.dtype = dtype
+        # False: return the inner output as it is (the caller converts it, a row band at a time).
         self.restore_output = restore_output
-        """False: return the inner output as it is (the caller converts it, e.g. a row band at a time)."""
 
     def forward(self, *args: Any, **kwargs: Any) -> Any:
         ref = next((a for a in args if isinstance(a, torch.Tensor) and a.is_floating_point()), None)

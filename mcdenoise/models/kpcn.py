@@ -136,22 +136,20 @@ def kpcn_features(batch: dict[str, torch.Tensor], config: KPCNConfig) -> dict[st
     return out
 
 
-def _mask_out_of_image_taps(z: torch.Tensor, k: int, row0: int = 0, height: int | None = None) -> torch.Tensor:
-    """(B, K*K, h, W) logits -> same with -inf wherever tap (i-r, j-r) of a pixel leaves the image.
+def _mask_out_of_image_taps(z: torch.Tensor, k: int) -> torch.Tensor:
+    """(B, K*K, H, W) logits -> same with -inf wherever tap (i-r, j-r) of a pixel leaves the image.
 
-    ``z`` holds image rows ``row0 .. row0 + h - 1`` of an image ``height`` rows high (default: all
-    of it). Built as a row term (K, h) plus a column term (K, W) broadcast into the sum, so no
+    Built as a row term (K, H) plus a column term (K, W) broadcast into the sum, so no
     K*K x H x W mask is allocated (it would be ~1 GB at 1080p with K = 21).
     """
     b, _, h, w = z.shape
-    height = h if height is None else height
     r = k // 2
     off = torch.arange(-r, r + 1, device=z.device)
-    ys = torch.arange(row0, row0 + h, device=z.device).view(1, h) + off.view(k, 1)  # (K, h)
+    ys = torch.arange(h, device=z.device).view(1, h) + off.view(k, 1)  # (K, H)
     xs = torch.arange(w, device=z.device).view(1, w) + off.view(k, 1)  # (K, W)
     neg = torch.tensor(float("-inf"), dtype=z.dtype, device=z.device)
     zero = torch.zeros((), dtype=z.dtype, device=z.device)
-    row = torch.where((ys >= 0) & (ys < height), zero, neg).view(1, k, 1, h, 1)
+    row = torch.where((ys >= 0) & (ys < h), zero, neg).view(1, k, 1, h, 1)
     col = torch.where((xs >= 0) & (xs < w), zero, neg).view(1, 1, k, 1, w)
     return (z.view(b, k, k, h, w) + row + col).view(b, k * k, h, w)
 
@@ -189,8 +187,7 @@ def _apply_kernels_banded(color: torch.Tensor, logits: torch.Tensor, k: int, ban
     kk = k * k
     out = torch.empty_like(color)
     rows = max(1, min(h, band_bytes // max(1, b * kk * w * 4)))
-    # One band buffer for every band, softmax in place: fresh 8 MB allocations per band cost
-    # more than the work on them once large allocations are on huge pages (mcdenoise/__init__.py).
+    # One band buffer for every band and the softmax in place: no allocation per band.
     buf = torch.empty(b * kk * rows * w, dtype=color.dtype, device=color.device)
     for r0 in range(0, h, rows):
         r1 = min(h, r0 + rows)
