@@ -186,3 +186,32 @@ def test_output_is_never_the_input(tmp_path, wskp, capfd):
     (tmp_path / "sub").mkdir()
     _refused(capfd, ["denoise", str(src), "-o", str(other), "--model", wskp, "--force"], "overwrite the input")
     assert src.read_bytes() == before
+
+
+def test_force_never_writes_into_an_input_folder(tmp_path, capfd):
+    """Catches issue 22 item 1: `denoise r -o r/noisy.exr --force` overwrote the folder's own noisy.exr,
+    and `--preview r/samples.bin --force` turned samples.bin into a PNG; a new name inside the folder,
+    an input EXR's own image folder and the weights file are refused too."""
+    torch.manual_seed(0)
+    model = build_model("sbmc", "small")
+    batch = synthetic_batch(model, spp=2, height=H, width=W)
+    samples = {k: v[0].numpy() for k, v in batch.items() if k != "scene_features"}
+    folder = write_image(tmp_path / "img", meta=ImageMeta(width=W, height=H, spp=2, channels=list(samples), scene="t"),
+                         samples=samples)
+    weights = _weights(tmp_path / "sbmc.safetensors", "sbmc")
+    before = {p.name: p.read_bytes() for p in folder.iterdir()}
+    out = str(tmp_path / "x.exr")
+    cases = [
+        ["-o", str(folder / "noisy.exr")],
+        ["-o", out, "--preview", str(folder / "samples.bin")],
+        ["-o", str(folder / "new.exr")],
+        ["-o", str(tmp_path / "img" / "." / "sub.exr")],
+        ["-o", out, "--preview", weights],
+    ]
+    for extra in cases:
+        _refused(capfd, ["denoise", str(folder), "--model", weights, "--force", *extra], "input")
+    # An input EXR that sits in an image folder: the folder is not written to either.
+    _refused(capfd, ["denoise", str(folder / "noisy.exr"), "--model", weights, "--force",
+                     "-o", str(folder / "clean.exr")], "inside the input folder")
+    assert {p.name: p.read_bytes() for p in folder.iterdir()} == before
+    assert not (tmp_path / "x.exr").exists()

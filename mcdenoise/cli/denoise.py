@@ -49,21 +49,47 @@ def _same(a: Path, b: Path) -> bool:
         return False
 
 
+def _inside(path: Path, folder: Path) -> bool:
+    """Whether ``path`` (existing or not, through any spelling or link) lies inside ``folder``."""
+    try:
+        return path.resolve().is_relative_to(folder.resolve())
+    except (OSError, RuntimeError):
+        return False
+
+
+def _read_sources(args: argparse.Namespace, inputs: list[Path]) -> tuple[list[Path], list[Path]]:
+    """``(files, folders)`` the command reads: the inputs, the weights or run folder of ``--model``,
+    and the image folder holding an input file (meta.json beside it)."""
+    sources = list(inputs)
+    if args.model is not None and Path(args.model).exists():
+        sources.append(Path(args.model))
+    files = [p for p in sources if not p.is_dir()]
+    folders = [p for p in sources if p.is_dir()]
+    folders += [p.parent for p in files if (p.parent / "meta.json").is_file()]
+    return files, folders
+
+
 def _check_outputs(args: argparse.Namespace, inputs: list[Path]) -> None:
-    """Refuse, before any work, outputs that would overwrite an input or an existing file."""
+    """Refuse, before any work, outputs that would overwrite a file the command reads, land inside
+    an input folder (image folder or run folder), or replace an existing file without --force."""
     out: Path = args.output
     if out.suffix.lower() != ".exr":
         raise McDenoiseError(f"{out}: the output must be an .exr file")
     targets = [("output", out)] + ([("preview", args.preview)] if args.preview is not None else [])
+    files, folders = _read_sources(args, inputs)
     for what, path in targets:
-        for src in inputs:
+        for src in files:
             if path.resolve() == src.resolve() or _same(path, src):
                 raise McDenoiseError(f"{path}: the {what} would overwrite the input {src}; choose another name")
+        for folder in folders:
+            if _inside(path, folder):
+                raise McDenoiseError(f"{path}: the {what} would be written inside the input folder {folder}, "
+                                     "which is never written to (even with --force); choose a path outside it")
         if path.is_dir():
             raise McDenoiseError(f"{path}: is a folder, the {what} must be a file")
         if path.exists() and not args.force:
             raise McDenoiseError(f"{path}: already exists; pass --force to replace it")
-    if args.preview is not None and args.preview.resolve() == out.resolve():
+    if args.preview is not None and (args.preview.resolve() == out.resolve() or _same(args.preview, out)):
         raise McDenoiseError(f"{out}: output and preview are the same file")
 
 
