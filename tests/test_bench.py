@@ -138,14 +138,11 @@ def test_cli_bench_json_out(tmp_path, capsys) -> None:
 
 
 @needs_oidn
-def test_quick_bench_under_two_minutes(tmp_path) -> None:
-    """Bug caught: `--quick` growing past the CI budget of 2 minutes on 2 cores, or failing on the
-    real target models (CI runs it: ~10 s)."""
-    import time
-
-    t0 = time.perf_counter()
+def test_quick_bench_runs(tmp_path) -> None:
+    """Bug caught: `--quick` failing on the real target models (CI runs it: ~10 s). Its size is
+    bounded by the work it is configured to do (test_quick_config_is_small), not by a wall-clock
+    limit that a slow or loaded CPU could miss (issue 18)."""
     assert main(["bench", "--quick", "--out", str(tmp_path / "q.md")]) == 0
-    assert time.perf_counter() - t0 < 120
     assert "### 256x256" in (tmp_path / "q.md").read_text()
 
 
@@ -153,6 +150,7 @@ def test_quick_config_is_small() -> None:
     """Bug caught: quick inheriting the full run's sizes or spp list (then it is not quick)."""
     q = quick_config()
     assert q.sizes == ((256, 256),) and q.spp == (1, 8) and q.rounds <= 2
+    assert len(q.methods) <= 8 and q.train_steps <= 2 and q.warmup <= 1
 
 
 def test_from_json_rerenders_docs_block(tmp_path, capsys) -> None:

@@ -10,8 +10,8 @@ import pytest
 
 from mcdenoise.errors import SceneError
 from mcdenoise.render import procedural as P
-from mcdenoise.render import procedural_meshes as pm
-from mcdenoise.render import procedural_textures as pt
+from mcdenoise.render.procedural import meshes as pm
+from mcdenoise.render.procedural import textures as pt
 
 # ---------------------------------------------------------------- numpy only (no Mitsuba)
 
@@ -174,6 +174,8 @@ def test_kind_argument_and_bad_kind() -> None:
 
 
 def test_rejected_scene_is_redrawn_from_derived_seed(monkeypatch: pytest.MonkeyPatch) -> None:
+    from mcdenoise.render.procedural import generator
+
     calls: list[int] = []
 
     def fake_draw(seed: int, kind: str | None, w: int, h: int, objects: tuple[int, int]) -> P.ProceduralScene:
@@ -190,8 +192,8 @@ def test_rejected_scene_is_redrawn_from_derived_seed(monkeypatch: pytest.MonkeyP
             return P.PreviewStats(0.0, 0.0, 1.0, 0.0, True)  # black: rejected
         return P.PreviewStats(0.4, 0.2, 0.0, 0.5, True)
 
-    monkeypatch.setattr(P, "_draw", fake_draw)
-    monkeypatch.setattr(P, "preview_stats", fake_stats)
+    monkeypatch.setattr(generator, "_draw", fake_draw)
+    monkeypatch.setattr(generator, "preview_stats", fake_stats)
     ps = P.generate(42)
     assert calls == [42, P.derive_seed(42, 1), P.derive_seed(42, 2)]
     assert ps.seed == 42 and ps.drawn_seed == calls[-1] and ps.attempts == 2
@@ -201,7 +203,7 @@ def test_rejected_scene_is_redrawn_from_derived_seed(monkeypatch: pytest.MonkeyP
     assert ps.scene["sky"]["scale"] == pytest.approx(k)
     assert 0.05 <= 0.2 * k <= 0.5
     calls.clear()
-    monkeypatch.setattr(P, "preview_stats", lambda ps, **kw: P.PreviewStats(0.0, 0.0, 1.0, 0.0, True))
+    monkeypatch.setattr(generator, "preview_stats", lambda ps, **kw: P.PreviewStats(0.0, 0.0, 1.0, 0.0, True))
     with pytest.raises(SceneError, match="rejected"):
         P.generate(1, max_attempts=3)
 
@@ -276,7 +278,7 @@ def test_generate_deterministic_and_checked() -> None:
 def test_view_cameras_stay_in_the_scene(kind: str) -> None:
     """Catches: extra views placed outside the room, inside furniture or far from the objects
     (outdoor objects only exist around the drawn view), or views that are not reproducible."""
-    from mcdenoise.render.procedural_views import view_camera
+    from mcdenoise.render.procedural.views import view_camera
 
     ps = P._draw(21, kind, 16, 16, (10, 12))
     origin, target, _ = ps.camera_path
@@ -298,7 +300,14 @@ def test_view_cameras_stay_in_the_scene(kind: str) -> None:
 
 
 @pytest.mark.render
-@pytest.mark.parametrize("seed,kind,sky", [(5, "indoor", None), (3, "outdoor", "envmap")])
+@pytest.mark.parametrize("seed,kind,sky", [
+    (5, "indoor", None),
+    # Known, open (issue 18/19): the first envmap data update after a render changes the kernel
+    # (two scalars become kernel inputs; bisected: not the folded x*1.0, not pending evaluations,
+    # not a second update before the preview), so the exposure fix compiles once more per outdoor
+    # envmap scene (~2.6 s). A warm disk cache used to hide it. strict: a fix makes this fail.
+    pytest.param(3, "outdoor", "envmap", marks=pytest.mark.xfail(strict=True, reason="envmap rescale recompiles once")),
+])
 def test_new_view_and_exposure_reuse_the_compiled_kernel(seed: int, kind: str, sky: str | None) -> None:
     """Catches: the camera pose or an emitter rescale (area/point/spot lights indoors, the
     envmap's scale outdoors) reaching the kernel as a literal, so that every view (and the
@@ -307,7 +316,7 @@ def test_new_view_and_exposure_reuse_the_compiled_kernel(seed: int, kind: str, s
     import drjit as dr
 
     from mcdenoise.render.api import RenderSettings, render_samples
-    from mcdenoise.render.procedural_views import set_camera, view_camera
+    from mcdenoise.render.procedural.views import set_camera, view_camera
 
     settings = RenderSettings(spp=2, ref_spp=0, width=16, height=16, seed=3)
     was = dr.flag(dr.JitFlag.KernelHistory)
@@ -321,7 +330,10 @@ def test_new_view_and_exposure_reuse_the_compiled_kernel(seed: int, kind: str, s
         set_camera(ps.loaded, view_camera(ps, np.random.default_rng(0)))
         render_samples(ps.loaded, settings)  # another view
         big = [k for k in dr.kernel_history() if (k.get("operation_count") or 0) > 1000]
-        assert len(big) >= 2 and all(k["cache_hit"] for k in big), [(k["operation_count"], k["cache_hit"]) for k in big]
+        # In-memory reuse only: ``cache_hit`` is also true for a kernel loaded from the disk cache,
+        # which hides a real second trace and compile-or-load on a warm machine (issue 18).
+        reused = [bool(k["cache_hit"]) and not k.get("cache_disk") for k in big]
+        assert len(big) >= 2 and all(reused), [(k["operation_count"], k["cache_hit"], k.get("cache_disk")) for k in big]
     finally:
         dr.set_flag(dr.JitFlag.KernelHistory, was)
 
@@ -351,7 +363,7 @@ def test_reference_time_slices_follow_on_screen_motion() -> None:
     """Catches: a reference slice count that ignores how far objects move on screen (visible
     ghost copies of fast objects, or 256 costly slices for motion under a pixel), or that
     forgets depth (near objects move more pixels) or objects behind the camera."""
-    from mcdenoise.render.procedural_views import motion_pixels, reference_time_slices
+    from mcdenoise.render.procedural.views import motion_pixels, reference_time_slices
 
     cam = P.look_at([0, 0, 0], [0, 0, 10], [0, 1, 0])  # +Z forward
     ps = P.ProceduralScene(scene={}, seed=0, drawn_seed=0, attempts=0, kind="outdoor", camera_to_world=cam,

@@ -37,6 +37,35 @@ def _env() -> dict[str, str]:
     return dict(os.environ, OMP_NUM_THREADS="1", PYTHONPATH=str(Path(__file__).parent))
 
 
+#: Runs the train CLI, stopping itself (SIGSTOP) once the metrics row of step 5 is written: the
+#: test then kills it at a known point whatever the CPU's speed (a polling window missed on fast
+#: or loaded machines, issue 18). Step 5 is past the step-4 checkpoint, so the resume must also
+#: drop a metrics row that no checkpoint covers.
+_STOP_AT_5 = """
+import os, signal, sys
+from mcdenoise.train import runlog
+write = runlog.MetricsLog.write
+def stopping_write(self, row):
+    write(self, row)
+    if row["step"] == 5:
+        os.kill(os.getpid(), signal.SIGSTOP)
+runlog.MetricsLog.write = stopping_write
+from mcdenoise.cli.main import main
+sys.exit(main(sys.argv[1:]))
+"""
+
+
+def _wait_stopped(proc: subprocess.Popen, timeout: float) -> bool:
+    """True once ``proc`` is stopped by a signal (state T in /proc), False if it exits or times out."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline and proc.poll() is None:
+        with open(f"/proc/{proc.pid}/stat") as f:
+            if f.read().rsplit(")", 1)[1].split()[0] in ("T", "t"):
+                return True
+        time.sleep(0.02)
+    return False
+
+
 def _losses(run: Path) -> list[str]:
     return [r["loss"] for r in read_metrics(run / "metrics.csv")]
 
@@ -57,14 +86,15 @@ def test_kill_and_resume_is_bit_exact(tiny: Path, tmp_path: Path) -> None:
         torch.set_num_threads(threads)
 
     run = tmp_path / "killed"
-    proc = subprocess.Popen(_cmd(tiny, run, steps), env=_env(), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    deadline = time.monotonic() + 240
-    while len(_losses(run)) < 5 and time.monotonic() < deadline and proc.poll() is None:
-        time.sleep(0.05)
+    argv = _cmd(tiny, run, steps)
+    proc = subprocess.Popen([PY, "-c", _STOP_AT_5, *argv[3:]], env=_env(), stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL)
+    stopped = _wait_stopped(proc, 600)  # a bound for a hung process only: the stop is an event
     proc.send_signal(signal.SIGKILL)
     proc.wait()
+    assert stopped, f"the run never reached step 5 (exit {proc.returncode})"
     done_before = len(_losses(run))
-    assert 5 <= done_before < steps, "the kill must land mid-run"
+    assert done_before == 5, "the kill must land mid-run, after step 5"
     ckpts = sorted((run / "checkpoints").glob("step_*"))
     assert ckpts and int(ckpts[-1].name[5:]) < steps
 

@@ -112,10 +112,11 @@ def run_tiled(
 ) -> np.ndarray:
     """Denoise tile by tile: ``read(tile)`` gives the model's batch (of one) for ``tile.window``.
 
-    Returns the ``(3, H, W)`` float32 output (numpy, on the host: only one tile's output is ever on
-    the device).
+    Returns the ``(3, H, W)`` output (numpy, on the host: only one tile's output is ever on the
+    device): float64 when the model runs in float64 (tests compare tiles in the precision whose
+    rounding does not depend on the CPU's kernels), else float32.
     """
-    out = np.zeros((3, plan.height, plan.width), np.float32)
+    out: np.ndarray | None = None
     tiles: Iterable[Tile] = plan.tiles()
     if progress is not None:
         tiles = progress(tiles)
@@ -126,6 +127,9 @@ def run_tiled(
             del batch
             sy, sx = tile.core_in_window
             cy, cx, ch, cw = tile.core
-            out[:, cy : cy + ch, cx : cx + cw] = y[0, :, sy, sx].float().cpu().numpy()
+            if out is None:
+                out = np.zeros((3, plan.height, plan.width), np.float64 if y.dtype == torch.float64 else np.float32)
+            out[:, cy : cy + ch, cx : cx + cw] = y[0, :, sy, sx].to(torch.float64 if out.dtype == np.float64 else torch.float32).cpu().numpy()
             del y
+    assert out is not None  # a plan always has at least one tile
     return out
