@@ -140,7 +140,7 @@ def _metadata(path: Path) -> dict[str, str]:
 
 
 def _from_run(run: Path) -> tuple[Denoiser, dict[str, Any]]:
-    from mcdenoise.train.checkpoint import latest_checkpoint
+    from mcdenoise.train.checkpoint import intact_checkpoint
     from mcdenoise.train.loop import CONFIG_FILE, WEIGHTS_FILE
 
     checkpoint: Path | None = None
@@ -160,9 +160,9 @@ def _from_run(run: Path) -> tuple[Denoiser, dict[str, Any]]:
     if checkpoint is not None:
         weights = checkpoint / "model.safetensors"
     elif not weights.is_file():
-        ck = latest_checkpoint(run)
+        ck = intact_checkpoint(run)
         if ck is None:
-            raise WeightsError(f"{run}: run has neither {WEIGHTS_FILE} nor a complete checkpoint")
+            raise WeightsError(f"{run}: run has neither {WEIGHTS_FILE} nor an intact checkpoint")
         weights, step = ck.path / "model.safetensors", ck.step
     load_weights(model, weights)
     if step is None:

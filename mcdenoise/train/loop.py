@@ -30,8 +30,8 @@ from mcdenoise.errors import McDenoiseError
 from mcdenoise.io.atomic import atomic_file
 from mcdenoise.models.registry import Denoiser, build_model
 from mcdenoise.models.weights import WeightsError, model_from_config
-from mcdenoise.train.checkpoint import latest_checkpoint, load_checkpoint, prune_checkpoints, save_checkpoint, \
-    state_dict_for_safetensors
+from mcdenoise.train.checkpoint import CHECKPOINT_DIR, Checkpoint, intact_checkpoint, load_checkpoint, prune_checkpoints, \
+    resume_checkpoint, save_checkpoint, state_dict_for_safetensors
 from mcdenoise.train.config import ConfigError, TrainConfig, check_resume_config, config_document, manifest_hash, read_config
 from mcdenoise.train.data import batch_source, training_batches, validation_batches
 from mcdenoise.train.optim import StepOutcome, lr_at
@@ -116,7 +116,7 @@ def prepare_run_dir(out: Path, doc: dict[str, Any], *, resume: bool, force: bool
         raise ConfigError(f"{out}: not empty and not a run folder (no {CONFIG_FILE}); choose another --out")
     if is_run and resume:
         check_resume_config(read_config(cfg_path), doc, cfg_path)
-        ck = latest_checkpoint(out)
+        ck = intact_checkpoint(out)
         return (ck.step if ck else 0), False
     if is_run and not force:
         raise ConfigError(f"{out}: a run already exists; pass --resume to continue it or --force to start over")
@@ -210,9 +210,13 @@ def _train(cfg: TrainConfig, out: Path, resume: bool, force: bool, on_step: Call
         raise err
 
     start = 0
+    st: dict[str, Any] | None = None
     if rank == 0:
         try:
-            start, _ = prepare_run_dir(out, doc, resume=resume, force=force)
+            _, fresh = prepare_run_dir(out, doc, resume=resume, force=force)
+            if not fresh:  # the newest intact checkpoint (damaged newer ones are named and passed over)
+                ck, st = resume_checkpoint(out, model, "cpu")
+                start = ck.step if ck is not None else 0
         except McDenoiseError:
             _broadcast_start(0, False, distributed, device)
             raise
@@ -223,9 +227,8 @@ def _train(cfg: TrainConfig, out: Path, resume: bool, force: bool, on_step: Call
     skipped = 0
     wall_before = 0.0  # wall time of earlier calls, up to the checkpoint resumed from
     if start > 0:
-        ck = latest_checkpoint(out)
-        assert ck is not None and ck.step == start
-        st = load_checkpoint(ck, model, device)
+        if st is None:  # the other ranks load the checkpoint rank 0 chose
+            st = load_checkpoint(Checkpoint(out / CHECKPOINT_DIR / f"step_{start:08d}", start), model, device)
         skipped = trainer.load_state(st)
         wall_before = float(st.get("wall_s", 0.0))
     if start >= cfg.steps:

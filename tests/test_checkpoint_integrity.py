@@ -1,0 +1,133 @@
+"""Damaged checkpoints are found and passed over on --resume (issue 22 item 2).
+
+A resume verifies each checkpoint's ``checksums.json`` (and, for folders written before checksums,
+that the files load) and falls back to the newest intact checkpoint with one line saying so; it
+never resumes from a flipped weight, nor prints a traceback for a truncated or garbage file.
+"""
+
+from __future__ import annotations
+
+import shutil
+import struct
+from pathlib import Path
+
+import pytest
+import torch
+
+from mcdenoise.cli.main import main
+from mcdenoise.train.checkpoint import CHECKSUM_FILE, Checkpoint, CheckpointError, list_checkpoints, load_checkpoint, \
+    save_checkpoint
+from mcdenoise.train.runlog import read_metrics
+from mcdenoise.models import build_model
+from train_tiny_data import make_tiny_dataset
+
+RUN = ["--model", "wskp", "--crop", "16", "--batch", "2", "--workers", "0", "--val-every", "0", "--no-progress",
+       "--checkpoint-every", "2", "--keep-every", "2", "--sampling", "uniform", "--threads", "1"]
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    """(data, an uninterrupted 8-step run with checkpoints at 2, 4, 6 and 8)."""
+    root = tmp_path_factory.mktemp("ck")
+    data = make_tiny_dataset(root / "data")
+    assert main(["train", *RUN, "--data", str(data), "--out", str(root / "ref"), "--steps", "8"]) == 0
+    return data, root / "ref"
+
+
+def _killed_after_6(ref: Path, run: Path) -> Path:
+    """A copy of ``ref`` as if killed after the step-6 checkpoint."""
+    shutil.copytree(ref, run)
+    shutil.rmtree(run / "checkpoints" / "step_00000008")
+    (run / "model.safetensors").unlink()
+    (run / "result.json").unlink()
+    return run
+
+
+def _losses(run: Path) -> list[str]:
+    return [r["loss"] for r in read_metrics(run / "metrics.csv")]
+
+
+def _flip_top_byte_of_a_float(path: Path) -> None:
+    """XOR 0x40 into the exponent byte of the first float32 of the first tensor (as the issue did)."""
+    raw = bytearray(path.read_bytes())
+    header = struct.unpack("<Q", raw[:8])[0]
+    raw[8 + header + 3] ^= 0x40
+    path.write_bytes(bytes(raw))
+
+
+def _truncate(path: Path) -> None:
+    path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+
+
+def _garbage(path: Path) -> None:
+    path.write_bytes(b"\x80\x04garbage" * 7)
+
+
+def _legacy_garbage_state(ck: Path) -> None:
+    """A folder from before checksums (no checksums.json) whose state.pt is garbage."""
+    (ck / CHECKSUM_FILE).unlink()
+    _garbage(ck / "state.pt")
+
+
+@pytest.mark.parametrize("damage,name", [
+    (_flip_top_byte_of_a_float, "model.safetensors"),
+    (_truncate, "model.safetensors"),
+    (_garbage, "model.safetensors"),
+    (_truncate, "state.pt"),
+    (_garbage, "state.pt"),
+    (_legacy_garbage_state, ""),
+])
+def test_resume_falls_back_to_newest_intact_checkpoint(runs, tmp_path, capfd, damage, name) -> None:
+    """Catches issue 22 item 2: a flipped weight in the newest checkpoint resumed silently (rc 0, one
+    weight at -1e37, a diverging run), and truncated/garbage state.pt or weights gave tracebacks. The
+    resume must name the damage in one line, continue from step 4 and match an uninterrupted run."""
+    data, ref = runs
+    run = _killed_after_6(ref, tmp_path / "run")
+    damage(run / "checkpoints" / "step_00000006" / name)
+    capfd.readouterr()
+    rc = main(["train", *RUN, "--data", str(data), "--out", str(run), "--steps", "8", "--resume"])
+    err = capfd.readouterr().err
+    assert rc == 0, err
+    lines = [ln for ln in err.splitlines() if "damaged" in ln]
+    assert len(lines) == 1 and "step_00000006" in lines[0] and "step 4" in lines[0], err
+    assert "Traceback" not in err
+    assert _losses(run) == _losses(ref)
+
+
+def test_every_checkpoint_damaged_is_one_line(runs, tmp_path, capfd) -> None:
+    """Catches a traceback (or a silent restart from step 0) when no checkpoint is intact."""
+    data, ref = runs
+    run = _killed_after_6(ref, tmp_path / "run")
+    for ck in list_checkpoints(run):
+        _truncate(ck.path / "state.pt")
+    capfd.readouterr()
+    assert main(["train", *RUN, "--data", str(data), "--out", str(run), "--steps", "8", "--resume"]) == 1
+    err = [ln for ln in capfd.readouterr().err.splitlines() if ln.strip()]
+    assert len(err) == 1 and "every checkpoint is damaged" in err[0] and "--force" in err[0], err
+
+
+def test_checkpoint_byte_flip_sweep(tmp_path) -> None:
+    """Catches any byte of a checkpoint (weights, state, checksums.json) whose change goes unnoticed:
+    every single-byte flip either raises CheckpointError or loads exactly the saved weights and state."""
+    torch.manual_seed(0)
+    model = build_model("wskp", "small")
+    state = {"optimizer": {"state": {}, "param_groups": []}, "rng_cpu": torch.get_rng_state(), "skipped": 0}
+    ck = save_checkpoint(tmp_path, 2, model, state)
+    want = {k: v.clone() for k, v in model.state_dict().items()}
+    for name in ("model.safetensors", "state.pt", CHECKSUM_FILE):
+        path = ck.path / name
+        good = path.read_bytes()
+        step = max(1, len(good) // 400)  # about 400 positions per file, both ends included
+        for i in sorted(set(range(0, len(good), step)) | set(range(max(0, len(good) - 64), len(good)))):
+            bad = bytearray(good)
+            bad[i] ^= 0x40
+            path.write_bytes(bytes(bad))
+            other = build_model("wskp", "small")
+            try:
+                got = load_checkpoint(Checkpoint(ck.path, 2), other)
+            except CheckpointError:
+                continue
+            finally:
+                path.write_bytes(good)
+            assert all(torch.equal(other.state_dict()[k], v) for k, v in want.items()), (name, i)
+            assert torch.equal(got["rng_cpu"], state["rng_cpu"]), (name, i)
