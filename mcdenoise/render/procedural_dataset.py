@@ -19,7 +19,7 @@ Every image folder is written under a hidden temporary name and renamed when com
 job leaves only hidden ``.proc_*`` leftovers, which the next run of the same shard deletes before
 it renders the missing images. Finished folders are never rendered again.
 
-Cost: each new scene compiles its own kernels (seconds; see :mod:`mcdenoise.render.procedural_views`).
+Cost: each new scene compiles its own kernels (seconds; see :mod:`mcdenoise.render.procedural.views`).
 A scene is therefore loaded once and everything is rendered from that one object: the rejection
 preview (same size, spp and motion as the input, so it compiles the input's kernel), every view
 (``views``, cameras set as opaque values) and every reference.
@@ -268,7 +268,7 @@ def _settings(cfg: DatasetConfig, seed: int, *, ps: Any = None, camera: Any = No
     """Render settings of one image; with ``ps`` (and its view's ``camera``) the scene's motion,
     and a reference time-slice count fitted to the on-screen motion."""
     from mcdenoise.render import RenderSettings
-    from mcdenoise.render.procedural_views import reference_time_slices
+    from mcdenoise.render.procedural.views import reference_time_slices
 
     motion = {k: tuple(v) for k, v in ps.object_motion.items()} if ps is not None else {}
     slices = reference_time_slices(ps, camera, cfg.width) if motion else RenderSettings.ref_time_slices
@@ -286,7 +286,7 @@ def _view(cfg: DatasetConfig, ps: Any, scene_seed: int, view: int, rejected: lis
     rejections the drawn camera is used with the view's own seed.
     """
     from mcdenoise.render.procedural import derive_seed, preview_stats
-    from mcdenoise.render.procedural_views import set_camera, view_camera, view_motion_end
+    from mcdenoise.render.procedural.views import set_camera, view_camera, view_motion_end
 
     for attempt in range(VIEW_ATTEMPTS):
         c2w = view_camera(ps, np.random.default_rng(derive_seed(scene_seed, 3, view, attempt)))
@@ -317,7 +317,7 @@ def render_procedural_image(
     """
     from mcdenoise.render import render_image
     from mcdenoise.render.procedural import derive_seed, generate
-    from mcdenoise.render.procedural_views import set_camera
+    from mcdenoise.render.procedural.views import set_camera
     from mcdenoise.render.sequence import camera_path, motion_vectors, primary_hits
 
     scene_seed = derive_seed(cfg.seed, index)

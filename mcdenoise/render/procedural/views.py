@@ -33,7 +33,9 @@ from typing import Any
 
 import numpy as np
 
-from mcdenoise.render.procedural import ProceduralScene, _roll_up, look_at
+from mcdenoise.render.procedural.camera import _roll_up
+from mcdenoise.render.procedural.scene import ProceduralScene
+from mcdenoise.render.procedural.transforms import look_at
 
 __all__ = ["set_camera", "scale_loaded_emitters", "view_camera", "view_motion_end", "motion_pixels", "reference_time_slices"]
 

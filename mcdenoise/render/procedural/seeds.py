@@ -1,0 +1,30 @@
+"""Seeds and seeded random choices of the scene generator.
+
+Every random number of a scene comes from one ``numpy.random.default_rng(seed)``; seeds of
+re-drawn scenes, views and previews are derived from integers with :func:`derive_seed` (no clock).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+__all__ = ["derive_seed"]
+
+
+def derive_seed(*ints: int) -> int:
+    """A 31-bit seed derived from integers, e.g. ``(dataset_seed, image_index)`` (no clock)."""
+    ss = np.random.SeedSequence([int(i) & 0xFFFFFFFFFFFFFFFF for i in ints])
+    return int(ss.generate_state(1, np.uint32)[0] >> 1)
+
+
+
+def _choice(rng: np.random.Generator, table: dict[str, float]) -> str:
+    keys = list(table)
+    p = np.array([table[k] for k in keys])
+    return keys[int(rng.choice(len(keys), p=p / p.sum()))]
+
+
+def _loguniform(rng: np.random.Generator, lo: float, hi: float) -> float:
+    return float(math.exp(rng.uniform(math.log(lo), math.log(hi))))
