@@ -87,6 +87,9 @@ class TrainConfig:
     model_overrides: dict[str, Any] = field(default_factory=dict)
     """Fields of the preset's model configuration replaced for this run, e.g. ``{"layers": 4}``
     (ablations such as ``mcdenoise repro``); the run's ``model_config`` records the result."""
+    init: str | None = None
+    """Start from these weights (fine-tuning): a shipped model name, a run folder or a
+    ``.safetensors`` file of the same model; its model configuration replaces the preset's."""
     data: str = ""
     """Dataset folder written by ``mcdenoise dataset`` (needs a ``train`` split; ``val`` for validation)."""
     steps: int = 2000
@@ -231,8 +234,11 @@ def config_document(cfg: TrainConfig, *, model_config: dict[str, Any], manifest_
 def check_resume_config(saved: dict[str, Any], current: dict[str, Any], where: Path) -> None:
     """Refuse (one line) a resume whose settings or dataset differ from the saved run's."""
     # A run saved before model_overrides existed trained without overrides.
-    a, b = {"model_overrides": {}, **saved.get("train", {})}, current["train"]
+    a, b = {"model_overrides": {}, "init": None, **saved.get("train", {})}, current["train"]
     diffs = [k for k in sorted(set(a) | set(b)) if k not in RUNTIME_FIELDS and a.get(k) != b.get(k)]
+    # More steps extend a run (the schedule is then laid over the new total); fewer are refused.
+    if "steps" in diffs and int(b.get("steps") or 0) > int(a.get("steps") or 0):
+        diffs.remove("steps")
     if diffs:
         shown = "; ".join(f"{k}: run has {a.get(k)!r}, command gives {b.get(k)!r}" for k in diffs[:3])
         raise ConfigError(f"{where}: config does not match the command ({shown}); use another --out or --force to start over")

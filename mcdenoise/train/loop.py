@@ -101,6 +101,21 @@ def _model_config_json(model: Denoiser) -> dict[str, Any]:
     return json.loads(json.dumps(d, default=list))  # tuples -> lists, as they read back
 
 
+def _init_model(cfg: TrainConfig) -> Denoiser:
+    """The model of ``cfg.init`` (fine-tuning), in training mode; refuses another model family,
+    a preset that differs from the one asked for, and overrides (the weights fix the architecture)."""
+    from mcdenoise.models.weights import load_denoiser
+
+    if cfg.model_overrides:
+        raise ConfigError("--init takes the architecture from its weights: model overrides cannot be combined with it")
+    model, info = load_denoiser(cfg.init)
+    if info["name"] != cfg.model:
+        raise ConfigError(f"--init {cfg.init}: holds {info['name']} weights, the run trains {cfg.model}")
+    if info["preset"] != cfg.preset:
+        raise ConfigError(f"--init {cfg.init}: preset {info['preset']}, the run asks for {cfg.preset} (pass --preset {info['preset']})")
+    return model.float().train()
+
+
 def prepare_run_dir(out: Path, doc: dict[str, Any], *, resume: bool, force: bool) -> tuple[int, bool]:
     """Create or check the run folder (rank 0 only). Returns ``(start_step, fresh)``.
 
@@ -115,8 +130,14 @@ def prepare_run_dir(out: Path, doc: dict[str, Any], *, resume: bool, force: bool
     if out.is_dir() and not is_run and any(out.iterdir()):
         raise ConfigError(f"{out}: not empty and not a run folder (no {CONFIG_FILE}); choose another --out")
     if is_run and resume:
-        check_resume_config(read_config(cfg_path), doc, cfg_path)
+        saved = read_config(cfg_path)
+        check_resume_config(saved, doc, cfg_path)
         ck = intact_checkpoint(out)
+        if saved["train"].get("steps") != doc["train"]["steps"]:
+            print(f"{out}: extending the run from {saved['train'].get('steps')} to {doc['train']['steps']} steps "
+                  "(learning-rate schedule laid over the new total)", file=sys.stderr)
+            with atomic_file(cfg_path) as tmp:
+                tmp.write_text(json.dumps({**saved, "train": {**saved["train"], "steps": doc["train"]["steps"]}}, indent=1) + "\n")
         return (ck.step if ck else 0), False
     if is_run and not force:
         raise ConfigError(f"{out}: a run already exists; pass --resume to continue it or --force to start over")
@@ -183,8 +204,11 @@ def _train(cfg: TrainConfig, out: Path, resume: bool, force: bool, on_step: Call
         raise ConfigError(f"batch {cfg.batch} is not divisible by the {world} processes")
     torch.manual_seed(cfg.seed)
     try:
-        model = (model_from_config(cfg.model, cfg.preset, cfg.model_overrides) if cfg.model_overrides
-                 else build_model(cfg.model, cfg.preset))
+        if cfg.init:
+            model = _init_model(cfg)
+        else:
+            model = (model_from_config(cfg.model, cfg.preset, cfg.model_overrides) if cfg.model_overrides
+                     else build_model(cfg.model, cfg.preset))
     except KeyError as e:
         raise ConfigError(str(e.args[0])) from None
     except WeightsError as e:  # an override names a field the model's config lacks
