@@ -47,7 +47,9 @@ def data(tmp_path_factory: pytest.TempPathFactory) -> Path:
     meta = root / entries[2]["path"] / "meta.json"
     doc = json.loads(meta.read_text())
     doc["extra"]["procedural"] = {"depth_of_field": True, "motion_blur": False}
-    meta.write_text(json.dumps(doc))
+    from mcdenoise.data.meta import seal_meta
+
+    meta.write_text(json.dumps(seal_meta(doc)))  # meta.json carries its own checksum (issue 22)
     return root
 
 
@@ -228,7 +230,9 @@ def test_data_without_references_is_refused(data: Path, tmp_path: Path, capsys: 
     shutil.copytree(data / read_manifest(data)[1]["path"], img)
     meta = json.loads((img / "meta.json").read_text())
     del meta["files"]["reference"]
-    (img / "meta.json").write_text(json.dumps(meta))
+    from mcdenoise.data.meta import seal_meta
+
+    (img / "meta.json").write_text(json.dumps(seal_meta(meta)))  # an intact meta.json without a reference
     (img / "reference.exr").unlink()
     _one_line_error(["eval", "--data", str(img), "--out", str(tmp_path / "r"), "--no-progress"], capsys,
                     r"none of its 1 image\(s\) has a reference")

@@ -294,12 +294,15 @@ def test_debug_flag_shows_the_traceback(tmp_path: Path) -> None:
 
 
 def test_meta_json_with_null_fields_is_one_line(tmp_path: Path) -> None:
-    """Bug: meta.json with null fields (channels, scene_features...) raised TypeError."""
+    """Bug: meta.json with null fields (channels, scene_features...) raised TypeError. (Sealed with a
+    matching meta_crc32, so the field checks behind the checksum are what is tested.)"""
+    from mcdenoise.data.meta import seal_meta
+
     _image(tmp_path / "img")
     meta = tmp_path / "img" / "meta.json"
     doc = json.loads(meta.read_text())
     for key in ("channels", "width", "scene_features", "seed"):
-        meta.write_text(json.dumps({**doc, key: None}))
+        meta.write_text(json.dumps(seal_meta({**doc, key: None})))
         with pytest.raises(FormatError, match=key):
             read_image(tmp_path / "img")
 

@@ -1,5 +1,7 @@
-"""Checksums of an image folder: CRC-32 per (channel, tile, sample) block of ``samples.bin`` and
-per file for ``noisy.exr`` / ``reference.exr``, recorded in ``meta.json`` under ``checksums``.
+"""Checksums of an image folder: CRC-32 per (channel, tile, sample) block of ``samples.bin``, of
+its prefix and JSON header (``samples_header``), and per file for ``noisy.exr`` / ``reference.exr``,
+recorded in ``meta.json`` under ``checksums``; meta.json covers itself (``meta_crc32``, see
+:func:`mcdenoise.data.meta.meta_crc32`).
 
 The block table is stored after the last channel section of ``samples.bin`` (at a page-aligned
 offset that ``meta.json`` gives), as little-endian uint32 ``(channels, tiles_y, tiles_x, spp)`` in
@@ -16,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["ALGORITHM", "block_crcs", "file_crc32", "read_table", "table_offset"]
+__all__ = ["ALGORITHM", "block_crcs", "file_crc32", "header_crc32", "read_table", "table_offset"]
 
 ALGORITHM = "crc32"
 _PAGE = 4096
@@ -49,6 +51,16 @@ def file_crc32(path: str | os.PathLike, chunk: int = 1 << 22) -> int:
             if not b:
                 return crc
             crc = zlib.crc32(b, crc)
+
+
+def header_crc32(path: str | os.PathLike) -> int:
+    """CRC-32 of the prefix and JSON header of ``samples.bin`` (the writer's own file, trusted)."""
+    from mcdenoise.data.samples_header import _PREFIX
+
+    with open(path, "rb") as f:
+        prefix = f.read(_PREFIX.size)
+        n = _PREFIX.unpack(prefix)[3]
+        return zlib.crc32(f.read(n), zlib.crc32(prefix))
 
 
 def read_table(path: Path, info: dict[str, Any], shape: tuple[int, int, int, int]) -> np.ndarray:

@@ -11,11 +11,30 @@ import numpy as np
 
 from mcdenoise.data.checksums import file_crc32
 from mcdenoise.data.finite import check_finite
-from mcdenoise.data.meta import META_FILE, ImageMeta, read_json_document
+from mcdenoise.data.checksums import ALGORITHM
+from mcdenoise.data.meta import META_FILE, ImageMeta, check_meta_checksum, read_json_document
 from mcdenoise.data.reader import SampleReader
 from mcdenoise.errors import FormatError
 
 __all__ = ["ImageFolder", "read_image"]
+
+
+def _checksums(doc: dict[str, Any], files: dict[str, Any], where: Path) -> dict[str, Any]:
+    """meta.json's ``checksums``, with an entry for every file it lists: a missing one is an error
+    (a damaged key must not switch verification off)."""
+    sums = doc.get("checksums")
+    if not isinstance(sums, dict) or sums.get("algorithm") != ALGORITHM:
+        raise FormatError(where, f"no checksums (an object with algorithm {ALGORITHM!r}); damaged or not ours")
+    need = [files[k] for k in ("noisy", "reference") if files.get(k)]
+    need += ["samples_header"] if files.get("samples") else []
+    for key in need:
+        if type(sums.get(key)) is not int:
+            raise FormatError(where, f"no checksum for {key} (damaged)")
+    blocks = sums.get("samples_blocks")
+    if files.get("samples") and not (isinstance(blocks, dict) and type(blocks.get("offset")) is int
+                                     and type(blocks.get("crc")) is int):
+        raise FormatError(where, "no checksum table entry samples_blocks (damaged)")
+    return sums
 
 
 class ImageFolder:
@@ -29,25 +48,25 @@ class ImageFolder:
         if not meta_path.is_file():
             raise FormatError(meta_path, "no such file (not an image folder?)")
         doc = read_json_document(meta_path, "mcdenoise-image", "image meta.json")
+        check_meta_checksum(doc, meta_path)
         self.meta = ImageMeta.from_json(doc, meta_path)
         files = doc.get("files", {})
+        if not isinstance(files, dict):
+            raise FormatError(meta_path, f"files must be an object, got {files!r}")
         self._files = files
-        sums = doc.get("checksums")
-        self.checksums: dict[str, Any] = sums if isinstance(sums, dict) else {}
+        self.checksums: dict[str, Any] = _checksums(doc, files, meta_path)
         self.cache = cache
         self._cache: dict[str, dict[str, np.ndarray]] = {}
         self.samples: SampleReader | None = None
         if files.get("samples"):
-            self.samples = SampleReader(self.path / files["samples"])
+            self.samples = SampleReader(self.path / files["samples"], header_crc=self.checksums["samples_header"])
             self.samples.meta = self.meta
             self.samples.checksums = self.checksums
-            blocks = self.checksums.get("samples_blocks")
-            if isinstance(blocks, dict) and isinstance(blocks.get("offset"), int):
-                r0 = self.samples
-                end = blocks["offset"] + 4 * len(r0.channels) * r0.tiles[0] * r0.tiles[1] * r0.spp
-                size = r0.path.stat().st_size
-                if size < end:
-                    raise FormatError(r0.path, f"truncated: {size} bytes, the data and its checksums need {end}")
+            r0, blocks = self.samples, self.checksums["samples_blocks"]
+            end = blocks["offset"] + 4 * len(r0.channels) * r0.tiles[0] * r0.tiles[1] * r0.spp
+            size = r0.path.stat().st_size
+            if size < end:
+                raise FormatError(r0.path, f"truncated: {size} bytes, the data and its checksums need {end}")
             r = self.samples
             if (r.spp, r.height, r.width) != (self.meta.spp, self.meta.height, self.meta.width):
                 raise FormatError(r.path, f"shape mismatch: spp/height/width {r.spp}/{r.height}/{r.width}, "
@@ -102,8 +121,8 @@ class ImageFolder:
     def _verify_file(self, path: Path) -> None:
         """Compare a whole file with the CRC-32 meta.json records for it (when it records one)."""
         want = self.checksums.get(path.name)
-        if want is None:
-            return
+        if type(want) is not int:
+            raise FormatError(self.path / META_FILE, f"no checksum for {path.name} (damaged)")
         try:
             got = file_crc32(path)
         except FileNotFoundError:

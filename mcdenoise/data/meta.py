@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import zlib
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -15,7 +16,7 @@ from mcdenoise.data.channels import CHANNELS, SCENE_FEATURES, base_name, is_vari
 from mcdenoise.errors import FormatError
 
 __all__ = ["FORMAT_VERSION", "ImageMeta", "read_json_document", "SAMPLES_FILE", "NOISY_FILE", "REFERENCE_FILE",
-           "META_FILE", "DEFAULT_TILE"]
+           "META_FILE", "DEFAULT_TILE", "META_CHECKSUM", "meta_crc32", "seal_meta", "check_meta_checksum"]
 
 FORMAT_VERSION = 1
 MAGIC = b"MCDSAMPL"
@@ -24,6 +25,8 @@ NOISY_FILE = "noisy.exr"
 REFERENCE_FILE = "reference.exr"
 META_FILE = "meta.json"
 DEFAULT_TILE = 32
+#: The field of meta.json holding the CRC-32 of the rest of the document (see :func:`meta_crc32`).
+META_CHECKSUM = "meta_crc32"
 
 
 @dataclass
@@ -122,3 +125,28 @@ def read_json_document(path: str | os.PathLike, fmt: str | None = None, what: st
         if doc.get("version") != FORMAT_VERSION:
             raise FormatError(path, f"format version {doc.get('version')}, this reader reads version {FORMAT_VERSION}")
     return doc
+
+
+def meta_crc32(doc: dict[str, Any]) -> int:
+    """CRC-32 of ``doc`` without its :data:`META_CHECKSUM` field, in a canonical JSON form (sorted
+    keys, no spaces): any change to what a reader parses changes it, whitespace does not."""
+    body = {k: v for k, v in doc.items() if k != META_CHECKSUM}
+    return zlib.crc32(json.dumps(body, sort_keys=True, separators=(",", ":"), ensure_ascii=True).encode())
+
+
+def seal_meta(doc: dict[str, Any]) -> dict[str, Any]:
+    """``doc`` with its :data:`META_CHECKSUM` field set (what the writer stores)."""
+    return {**{k: v for k, v in doc.items() if k != META_CHECKSUM}, META_CHECKSUM: meta_crc32(doc)}
+
+
+def check_meta_checksum(doc: dict[str, Any], path: str | os.PathLike) -> None:
+    """Raise FormatError naming ``path`` unless ``doc`` carries a matching :data:`META_CHECKSUM`.
+
+    A missing field is an error, not a skip: a damaged key must not switch verification off.
+    """
+    want = doc.get(META_CHECKSUM)
+    if type(want) is not int:
+        raise FormatError(path, f"damaged or written before meta.json carried its own checksum: no integer "
+                                f"{META_CHECKSUM!r} field (render the image again)")
+    if meta_crc32(doc) != want:
+        raise FormatError(path, "damaged: the metadata does not match its own checksum (meta_crc32)")

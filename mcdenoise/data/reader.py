@@ -43,7 +43,9 @@ class SampleReader:
     output buffer; :attr:`bytes_read` counts them. :meth:`memmap` exposes the raw tiled arrays.
     """
 
-    def __init__(self, path: str | os.PathLike) -> None:
+    def __init__(self, path: str | os.PathLike, *, header_crc: int | None = None) -> None:
+        """``header_crc``: CRC-32 of the prefix and JSON header that meta.json records; checked
+        before the header is interpreted (None: unchecked, a file opened without its meta.json)."""
         p = Path(path)
         self.path = p / SAMPLES_FILE if p.is_dir() else p
         if not self.path.is_file():
@@ -58,9 +60,15 @@ class SampleReader:
                 raise FormatError(self.path, f"not an mcdenoise samples file (magic {magic!r})")
             if version != FORMAT_VERSION:
                 raise FormatError(self.path, f"format version {version}, this reader reads version {FORMAT_VERSION}")
+            # Bound the length by the file size before reading: a damaged length must not allocate.
+            if n > size - _PREFIX.size:
+                raise FormatError(self.path, f"damaged or truncated: the header length says {n} bytes, "
+                                             f"the file has {size}")
             text = f.read(n)
         if len(text) < n:
             raise FormatError(self.path, f"truncated: header needs {n} bytes, file has {size}")
+        if header_crc is not None and zlib.crc32(text, zlib.crc32(prefix)) != header_crc:
+            raise FormatError(self.path, "damaged: the header does not match its checksum in meta.json")
         try:
             self.header: dict[str, Any] = json.loads(text)
         except (UnicodeDecodeError, json.JSONDecodeError) as exc:

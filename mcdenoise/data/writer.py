@@ -13,9 +13,10 @@ from typing import Any
 import numpy as np
 
 from mcdenoise.data.channels import CHANNELS, base_name, num_components, variance_name
-from mcdenoise.data.meta import DEFAULT_TILE, FORMAT_VERSION, META_FILE, NOISY_FILE, REFERENCE_FILE, SAMPLES_FILE, ImageMeta
+from mcdenoise.data.meta import DEFAULT_TILE, FORMAT_VERSION, META_FILE, NOISY_FILE, REFERENCE_FILE, SAMPLES_FILE, ImageMeta, \
+    seal_meta
 from mcdenoise.data.samples_header import _PREFIX, MAGIC, _samples_header
-from mcdenoise.data.checksums import ALGORITHM, block_crcs, file_crc32, table_offset
+from mcdenoise.data.checksums import ALGORITHM, block_crcs, file_crc32, header_crc32, table_offset
 from mcdenoise.data.finite import sanitize_nonfinite
 from mcdenoise.io.safety import (
     DEFAULT_MAX_BYTES,
@@ -244,7 +245,8 @@ class SampleWriter:
         with open(self._path, "r+b") as f:
             f.seek(self._table_offset)
             f.write(raw)
-        return {"algorithm": ALGORITHM, "samples_blocks": {"offset": self._table_offset, "crc": zlib.crc32(raw)}}
+        return {"algorithm": ALGORITHM, "samples_blocks": {"offset": self._table_offset, "crc": zlib.crc32(raw)},
+                "samples_header": header_crc32(self._path)}
 
     def abort(self) -> None:
         """Drop the temporary folder without writing anything."""
@@ -325,7 +327,7 @@ def _write_rest(
                      "reference": REFERENCE_FILE if reference is not None else None},
            "checksums": sums}
     with atomic_file(tmp / META_FILE) as t:
-        t.write_text(json.dumps(doc, indent=1) + "\n")
+        t.write_text(json.dumps(seal_meta(doc), indent=1) + "\n")
 
 
 def write_image(
