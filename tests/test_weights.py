@@ -126,3 +126,50 @@ def test_card_commands_parse_back_to_the_settings_that_ran(run: Path, tmp_path: 
     (tmp_path / "dataset.json").write_text(json.dumps(cfg.to_json()))
     ns = _parse(dataset_cli, dataset_command(tmp_path))
     assert (ns.count, ns.seed, ns.spp, ns.ref_spp, ns.size, ns.views, ns.split) == (7, 3, 16, 0, "64x48", 2, "0.8,0.2,0")
+
+
+def test_non_finite_weights_are_refused(tmp_path: Path, capfd: pytest.CaptureFixture) -> None:
+    """Catches issue 22 item 5: NaN weights denoised to an all-NaN image with rc 0; loading them must
+    be a one-line error naming the file (Python API and CLI)."""
+    torch.manual_seed(0)
+    state = state_dict_for_safetensors(build_model("wskp"))
+    first = next(k for k, v in state.items() if v.is_floating_point())
+    state[first].view(-1)[0] = float("nan")
+    bad = tmp_path / "nan.safetensors"
+    save_file(state, str(bad), metadata={"model": "wskp", "preset": "small"})
+    with pytest.raises(W.WeightsError, match="non-finite") as e:
+        W.load_denoiser(bad)
+    assert str(bad) in str(e.value) and "\n" not in str(e.value)
+    from mcdenoise.cli.main import main
+    from mcdenoise.io.exr import write_exr_raw
+
+    rng = __import__("numpy").random.default_rng(0)
+    src = tmp_path / "in.exr"
+    write_exr_raw(src, {c: rng.random((16, 16)).astype("float32") for c in
+                        ("R", "G", "B", "albedo.R", "albedo.G", "albedo.B", "normal.X", "normal.Y", "normal.Z", "depth.Y")})
+    capfd.readouterr()
+    assert main(["denoise", str(src), "-o", str(tmp_path / "o.exr"), "--model", str(bad)]) == 1
+    err = [ln for ln in capfd.readouterr().err.splitlines() if ln.strip()]
+    assert len(err) == 1 and "nan.safetensors" in err[0] and "non-finite" in err[0], err
+    assert not (tmp_path / "o.exr").exists()
+
+
+def test_weights_file_and_config_errors_are_one_line(tmp_path: Path) -> None:
+    """Catches issue 22 item 9's weights cases: `--model /missing.safetensors` said "does not name
+    its model"; malformed model_config metadata and a JSON list as a run's config.json gave tracebacks."""
+    with pytest.raises(W.WeightsError, match="no such weights file"):
+        W.load_denoiser(tmp_path / "missing.safetensors")
+    state = state_dict_for_safetensors(build_model("wskp"))
+    for text, needle in (("{not json", "malformed model_config"), ("[1, 2]", "must be a JSON object")):
+        f = tmp_path / "w.safetensors"
+        save_file(state, str(f), metadata={"model": "wskp", "preset": "small", "model_config": text})
+        with pytest.raises(W.WeightsError, match=needle) as e:
+            W.load_denoiser(f)
+        assert str(f) in str(e.value)
+    run = tmp_path / "run"
+    run.mkdir()
+    for doc in ([1, 2], {"train": [1]}, {"train": {"model": "wskp"}, "model_config": [3]}):
+        (run / "config.json").write_text(json.dumps(doc))
+        with pytest.raises(W.WeightsError, match="config.json") as e:
+            W.load_denoiser(run)
+        assert "\n" not in str(e.value)

@@ -110,7 +110,8 @@ def model_from_config(name: str, preset: str, model_config: dict[str, Any] | Non
 
 
 def load_weights(model: torch.nn.Module, path: str | Path) -> None:
-    """Load a safetensors state dict into ``model`` (strict); one-line error naming the file."""
+    """Load a safetensors state dict into ``model`` (strict); one-line error naming the file, also for
+    non-finite (NaN/Inf) weights, which would denoise to an all-NaN image."""
     from safetensors import SafetensorError
     from safetensors.torch import load_file
 
@@ -121,6 +122,10 @@ def load_weights(model: torch.nn.Module, path: str | Path) -> None:
         state = load_file(str(path))
     except (SafetensorError, OSError, ValueError) as e:
         raise WeightsError(f"{path}: not a readable safetensors file ({e})") from None
+    bad = [k for k, v in state.items() if v.is_floating_point() and not bool(torch.isfinite(v).all())]
+    if bad:
+        raise WeightsError(f"{path}: non-finite weights (NaN or Inf) in {len(bad)} tensor(s), first {bad[0]!r}; "
+                           "the file is damaged or its training diverged")
     try:
         model.load_state_dict(state, strict=True)
     except RuntimeError as e:
@@ -139,6 +144,19 @@ def _metadata(path: Path) -> dict[str, str]:
         raise WeightsError(f"{path}: not a readable safetensors file ({e})") from None
 
 
+def _model_config(meta: dict[str, str], path: Path) -> dict[str, Any] | None:
+    """The ``model_config`` metadata of a weights file as a dict (None when absent); one line when malformed."""
+    if "model_config" not in meta:
+        return None
+    try:
+        cfg = json.loads(meta["model_config"])
+    except ValueError as e:
+        raise WeightsError(f"{path}: malformed model_config metadata ({e})") from None
+    if not isinstance(cfg, dict):
+        raise WeightsError(f"{path}: model_config metadata must be a JSON object, got {type(cfg).__name__}")
+    return cfg
+
+
 def _from_run(run: Path) -> tuple[Denoiser, dict[str, Any]]:
     from mcdenoise.train.checkpoint import intact_checkpoint
     from mcdenoise.train.loop import CONFIG_FILE, WEIGHTS_FILE
@@ -150,6 +168,10 @@ def _from_run(run: Path) -> tuple[Denoiser, dict[str, Any]]:
         doc = json.loads((run / CONFIG_FILE).read_text())
     except (OSError, ValueError) as e:
         raise WeightsError(f"{run / CONFIG_FILE}: cannot read the run's configuration ({e})") from None
+    if not isinstance(doc, dict) or not isinstance(doc.get("train") or {}, dict):
+        raise WeightsError(f"{run / CONFIG_FILE}: not a run configuration (expected a JSON object with a 'train' object)")
+    if not isinstance(doc.get("model_config") or {}, dict):
+        raise WeightsError(f"{run / CONFIG_FILE}: model_config must be a JSON object")
     train = doc.get("train") or {}
     name, preset = train.get("model"), train.get("preset", "small")
     if not isinstance(name, str):
@@ -185,12 +207,14 @@ def load_denoiser(spec: str | Path, *, preset: str | None = None, model: str | N
     if p.is_dir():
         net, info = _from_run(p)
     elif p.is_file() or s.endswith(".safetensors"):
-        meta = _metadata(p) if p.is_file() else {}
+        if not p.is_file():
+            raise WeightsError(f"{p}: no such weights file")
+        meta = _metadata(p)
         name = model or meta.get("model")
         if not name:
             raise WeightsError(f"{p}: weights file does not name its model (no 'model' metadata); pass model=")
         pre = preset or meta.get("preset", "small")
-        cfg = json.loads(meta["model_config"]) if "model_config" in meta else None
+        cfg = _model_config(meta, p)
         net = model_from_config(name, pre, cfg)
         load_weights(net, p)
         info = {"name": name, "preset": pre, "weights": str(p), "source": "file", "label": p.stem}
