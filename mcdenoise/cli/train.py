@@ -62,7 +62,7 @@ def add_parser(p: argparse.ArgumentParser) -> None:
 def config_from_args(args: argparse.Namespace):  # -> TrainConfig
     """Build the TrainConfig; with ``--resume`` and no ``--model``, start from the run's saved one."""
     from mcdenoise.train.config import ConfigError, TrainConfig, read_config
-    from mcdenoise.train.loop import CONFIG_FILE
+    from mcdenoise.io.run_folder import CONFIG_FILE
 
     given = {f: getattr(args, f) for f in _FIELDS if getattr(args, f) is not None}
     if args.spp is not None:

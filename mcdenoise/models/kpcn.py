@@ -29,7 +29,7 @@ import torch
 from torch import nn
 
 from mcdenoise.data.channels import variance_name
-from mcdenoise.models.registry import Denoiser, register_model
+from mcdenoise.models.base import Denoiser, register_model
 from mcdenoise.ops.gather import gather, gather_rows
 from mcdenoise.ops.kernels import softmax_kernel
 

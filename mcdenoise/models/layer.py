@@ -32,7 +32,7 @@ from mcdenoise.models.layer_config import (  # noqa: F401  (LAYER_CHANNELS, Laye
     _small_layer,
     _small_optimized,
 )
-from mcdenoise.models.registry import Denoiser, register_model
+from mcdenoise.models.base import Denoiser, register_model
 from mcdenoise.ops.composite import composite_layers, gather_layer_sums, splat_layer_sums
 from mcdenoise.ops.multiscale import build_pyramid, combine_levels
 

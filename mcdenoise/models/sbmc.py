@@ -28,7 +28,7 @@ from torch import nn
 
 from mcdenoise.data.channels import SCENE_FEATURES, num_components
 from mcdenoise.models.blocks import FCStack, UNet, signed_log1p
-from mcdenoise.models.registry import Denoiser, register_model
+from mcdenoise.models.base import Denoiser, register_model
 from mcdenoise.ops.gather import gather, gather_rows
 from mcdenoise.ops.kernels import destination_max, per_destination_exp, per_pixel_exp
 from mcdenoise.ops.splat import SplatAccumulator, normalize_splat, splat, splat_into_

@@ -25,6 +25,7 @@ from typing import Any
 
 from mcdenoise.errors import McDenoiseError
 from mcdenoise.io.atomic import atomic_file
+from mcdenoise.io.run_folder import CONFIG_FILE, RESULT_FILE, WEIGHTS_FILE, checkpoint_run
 from mcdenoise.models.weights import SHIPPED_DIR, WeightsError, load_denoiser
 
 __all__ = ["dataset_command", "train_command", "model_card", "card_markdown", "ship"]
@@ -106,7 +107,6 @@ def _test_metrics(results: dict[str, Any], weights: str) -> dict[str, Any]:
 
 def model_card(run_dir: Path, model: Any, info: dict[str, Any], results: dict[str, Any] | None) -> dict[str, Any]:
     from mcdenoise.train.config import read_config
-    from mcdenoise.train.loop import CONFIG_FILE, RESULT_FILE
 
     doc = read_config(run_dir / CONFIG_FILE)
     res = json.loads((run_dir / RESULT_FILE).read_text()) if (run_dir / RESULT_FILE).is_file() else {}
@@ -196,12 +196,13 @@ def ship(run_dir: str | Path, *, results_json: str | Path | None = None, out_dir
     from mcdenoise.train.checkpoint import state_dict_for_safetensors
 
     run = Path(run_dir)
-    if not (run / "model.safetensors").is_file():
-        raise WeightsError(f"{run}: no final model.safetensors (is the run finished?)")
+    if not (run / WEIGHTS_FILE).is_file():
+        raise WeightsError(f"{run}: no final {WEIGHTS_FILE} (is the run finished?)")
     model, info = load_denoiser(run)
     checkpoint = None
-    if not (run / "config.json").is_file():  # a checkpoint folder RUN/checkpoints/step_N (early stopping)
-        checkpoint, run = run, run.parent.parent
+    owner = checkpoint_run(run)
+    if owner is not None:  # a checkpoint folder RUN/checkpoints/step_N (early stopping)
+        checkpoint, run = run, owner
     results = None
     if results_json is not None:
         try:

@@ -26,7 +26,9 @@ from typing import Any
 import torch
 
 from mcdenoise.errors import McDenoiseError
-from mcdenoise.models.registry import MODELS, Denoiser, _load_all
+from mcdenoise.io.run_folder import CONFIG_FILE, WEIGHTS_FILE, checkpoint_run, intact_checkpoint
+from mcdenoise.models.base import MODELS, Denoiser
+from mcdenoise.models.builtin import load_builtin_models
 
 __all__ = [
     "SHIPPED_DIR",
@@ -93,7 +95,7 @@ def _coerce(default: Any, value: Any) -> Any:
 
 def model_from_config(name: str, preset: str, model_config: dict[str, Any] | None = None) -> Denoiser:
     """Build ``name`` from ``preset``, then apply the saved ``model_config`` fields (a run's or a card's)."""
-    _load_all()
+    load_builtin_models()
     if name not in MODELS:
         raise WeightsError(f"unknown model {name!r}; registered: {', '.join(sorted(MODELS))}")
     entry = MODELS[name]
@@ -158,12 +160,10 @@ def _model_config(meta: dict[str, str], path: Path) -> dict[str, Any] | None:
 
 
 def _from_run(run: Path) -> tuple[Denoiser, dict[str, Any]]:
-    from mcdenoise.train.checkpoint import intact_checkpoint
-    from mcdenoise.train.loop import CONFIG_FILE, WEIGHTS_FILE
-
     checkpoint: Path | None = None
-    if not (run / CONFIG_FILE).is_file() and (run / "model.safetensors").is_file() and (run.parent.parent / CONFIG_FILE).is_file():
-        checkpoint, run = run, run.parent.parent  # runs/x/checkpoints/step_00001000: that step of run x
+    owner = checkpoint_run(run)
+    if owner is not None:
+        checkpoint, run = run, owner  # runs/x/checkpoints/step_00001000: that step of run x
     try:
         doc = json.loads((run / CONFIG_FILE).read_text())
     except (OSError, ValueError) as e:
@@ -180,12 +180,12 @@ def _from_run(run: Path) -> tuple[Denoiser, dict[str, Any]]:
     weights = run / WEIGHTS_FILE
     step: int | None = None
     if checkpoint is not None:
-        weights = checkpoint / "model.safetensors"
+        weights = checkpoint / WEIGHTS_FILE
     elif not weights.is_file():
         ck = intact_checkpoint(run)
         if ck is None:
             raise WeightsError(f"{run}: run has neither {WEIGHTS_FILE} nor an intact checkpoint")
-        weights, step = ck.path / "model.safetensors", ck.step
+        weights, step = ck.path / WEIGHTS_FILE, ck.step
     load_weights(model, weights)
     if step is None:
         step = int(_metadata(weights).get("step", train.get("steps", 0)) or 0)
@@ -201,7 +201,7 @@ def load_denoiser(spec: str | Path, *, preset: str | None = None, model: str | N
     (``shipped``, ``run`` or ``file``), ``label`` (a short name for tables) and, for shipped
     weights, ``card``.
     """
-    _load_all()
+    load_builtin_models()
     s = str(spec)
     p = Path(s)
     if p.is_dir():

@@ -27,7 +27,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from mcdenoise.models.registry import Denoiser, register_model
+from mcdenoise.models.base import Denoiser, register_model
 from mcdenoise.ops.importance import fused_importance_filter
 from mcdenoise.ops.temporal import temporal_accumulate
 

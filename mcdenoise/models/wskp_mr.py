@@ -20,7 +20,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from mcdenoise.models.blocks import PointwiseConv
-from mcdenoise.models.registry import Denoiser, register_model
+from mcdenoise.models.base import Denoiser, register_model
 from mcdenoise.models.wskp import _PAPER, INPUT_CHANNELS, wskp_input
 from mcdenoise.ops.importance import fused_importance_filter
 from mcdenoise.ops.multiscale import downsample2, multires_blend

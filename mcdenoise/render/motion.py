@@ -3,16 +3,14 @@ camera rays between the start and end camera transforms."""
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
 from mcdenoise.errors import SceneError
 from mcdenoise.render._mitsuba import mitsuba
+from mcdenoise.render.prepared import _Prepared
 from mcdenoise.render.settings import derive_seed
-
-if TYPE_CHECKING:
-    from mcdenoise.render.prepare import _Prepared
 
 
 def _pose_objects(prep: _Prepared, t: float) -> None:

@@ -1,9 +1,9 @@
 """Per-render state: the integrator with its roughness table, the sensor, and the motion
-bookkeeping (:class:`_Prepared`), set up before tracing and undone after it."""
+bookkeeping (:class:`~mcdenoise.render.prepared._Prepared`), set up before tracing and undone
+after it."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -12,6 +12,7 @@ from mcdenoise.errors import SceneError
 from mcdenoise.render._mitsuba import mitsuba
 from mcdenoise.render.integrator import INTEGRATOR_NAME
 from mcdenoise.render.motion import _pose_objects
+from mcdenoise.render.prepared import _Prepared
 from mcdenoise.render.scene_loading import _film_size
 from mcdenoise.render.settings import RenderSettings
 
@@ -60,27 +61,6 @@ def _roughness_table(scene: Any) -> Any:
     for rid, a in entries.items():
         table[rid] = a
     return mi.Float(table)
-
-
-@dataclass
-class _Prepared:
-    """Per-call state: integrator, sensor, motion bookkeeping."""
-
-    integrator: Any
-    sensor: Any
-    width: int
-    height: int
-    has_lens: bool
-    shutter_open: float
-    shutter_time: float
-    cam_start: np.ndarray | None = None
-    cam_end: np.ndarray | None = None
-    # param key (to_world or vertex_positions) -> (base value as float64 array, translation)
-    motion: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
-    # vertex_positions key -> (its vertex_normals key, normals as loaded (float32, flat))
-    normals: dict[str, tuple[str, np.ndarray]] = field(default_factory=dict)
-    params: Any = None
-    restore_camera: Any = None
 
 
 def _prepare(scene: Any, settings: RenderSettings, camera_to_world: np.ndarray | None) -> _Prepared:

@@ -10,7 +10,7 @@ import numpy as np
 from mcdenoise.render._mitsuba import mitsuba
 from mcdenoise.render.integrator import FULL_OUTPUTS, LEVEL_FULL, LEVEL_REFERENCE
 from mcdenoise.render.motion import _move_camera_rays
-from mcdenoise.render.prepare import _Prepared
+from mcdenoise.render.prepared import _Prepared
 
 
 def _trace_chunk(

@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from mcdenoise.io.atomic import atomic_file
+from mcdenoise.repro.report import METRIC_NAMES, plot_curves
 
 __all__ = [
     "Variant",
@@ -34,10 +35,6 @@ __all__ = [
     "run_experiment",
     "METRIC_NAMES",
 ]
-
-#: Validation metrics of the training engine (``val_<name>`` columns of metrics.csv), as printed.
-METRIC_NAMES = {"relmse": "relMSE", "smape": "SMAPE", "l1": "L1", "psnr": "PSNR (dB)"}
-
 
 @dataclass(frozen=True)
 class Variant:
@@ -212,8 +209,6 @@ def _run_experiment(exp: Experiment, data: str | Path | None, steps: int | None,
         "wall_s_training": sum(v["wall_s"] for v in variants.values()),
     }
     result["verdict"], result["explanation"] = exp.judge(result)
-    from mcdenoise.repro.report import plot_curves
-
     result["plot"] = str(plot_curves(result, folder / "val_loss.png"))
     result["json"] = str(folder / "result.json")
     with atomic_file(folder / "result.json") as tmp:

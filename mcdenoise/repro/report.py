@@ -8,9 +8,11 @@ from pathlib import Path
 from typing import Any
 
 from mcdenoise.io.atomic import atomic_file
-from mcdenoise.repro.common import METRIC_NAMES
 
-__all__ = ["plot_curves", "markdown_block", "command_line", "spread"]
+__all__ = ["METRIC_NAMES", "plot_curves", "markdown_block", "command_line", "spread"]
+
+#: Validation metrics of the training engine (``val_<name>`` columns of metrics.csv), as printed.
+METRIC_NAMES = {"relmse": "relMSE", "smape": "SMAPE", "l1": "L1", "psnr": "PSNR (dB)"}
 
 
 def plot_curves(result: dict[str, Any], out_png: Path) -> Path:

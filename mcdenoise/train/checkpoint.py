@@ -11,46 +11,30 @@ Each folder also holds ``checksums.json`` (size and SHA-256 of both files, writt
 (:func:`resume_checkpoint`) verifies it and falls back to the newest intact checkpoint, saying so in
 one line: a flipped bit, a truncated or garbage file, a missing or damaged ``checksums.json`` all
 make a checkpoint damaged. Folders written before checksums existed are checked by loading them.
+
+The folder layout, listing and checksum verification (standard library only) are in
+:mod:`mcdenoise.io.run_folder` and re-exported here; this module writes and loads with torch.
 """
 
 from __future__ import annotations
 
-import hashlib
 import json
 import pickle
-import re
 import shutil
 import sys
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import torch
 from safetensors.torch import load_file, save_file
 
-from mcdenoise.errors import FormatError
 from mcdenoise.io.atomic import atomic_dir
+from mcdenoise.io.run_folder import CHECKPOINT_DIR, CHECKPOINT_FILES, CHECKSUM_FILE, Checkpoint, CheckpointError, \
+    checkpoint_folder_name, intact_checkpoint, latest_checkpoint, list_checkpoints, sha256_file, verify_checkpoint
 
 __all__ = ["CHECKPOINT_DIR", "CHECKSUM_FILE", "Checkpoint", "CheckpointError", "save_checkpoint", "latest_checkpoint",
            "load_checkpoint", "verify_checkpoint", "resume_checkpoint", "intact_checkpoint", "prune_checkpoints",
-           "state_dict_for_safetensors", "sha256_file"]
-
-CHECKPOINT_DIR = "checkpoints"
-CHECKSUM_FILE = "checksums.json"
-_FILES = ("model.safetensors", "state.pt")
-_NAME = re.compile(r"^step_(\d{8})$")
-
-
-class CheckpointError(FormatError):
-    """A checkpoint folder is damaged: checksum mismatch, truncated or unreadable file."""
-
-
-@dataclass
-class Checkpoint:
-    """A complete checkpoint folder and the step it was written after."""
-
-    path: Path
-    step: int
+           "state_dict_for_safetensors", "sha256_file", "list_checkpoints"]
 
 
 def state_dict_for_safetensors(model: torch.nn.Module) -> dict[str, torch.Tensor]:
@@ -60,69 +44,14 @@ def state_dict_for_safetensors(model: torch.nn.Module) -> dict[str, torch.Tensor
 
 def save_checkpoint(run_dir: Path, step: int, model: torch.nn.Module, state: dict[str, Any]) -> Checkpoint:
     """Write ``checkpoints/step_<step>/`` atomically; ``state`` must hold tensors/numbers/strings only."""
-    final = Path(run_dir) / CHECKPOINT_DIR / f"step_{step:08d}"
+    final = Path(run_dir) / CHECKPOINT_DIR / checkpoint_folder_name(step)
     # A rerun after a kill between this step's write and the next may find it already there.
     with atomic_dir(final, overwrite=True) as tmp:
         save_file(state_dict_for_safetensors(model), str(tmp / "model.safetensors"), metadata={"step": str(step)})
         torch.save(dict(state, step=step), tmp / "state.pt")
-        sums = {name: {"bytes": (tmp / name).stat().st_size, "sha256": sha256_file(tmp / name)} for name in _FILES}
+        sums = {name: {"bytes": (tmp / name).stat().st_size, "sha256": sha256_file(tmp / name)} for name in CHECKPOINT_FILES}
         (tmp / CHECKSUM_FILE).write_text(json.dumps(sums, indent=1) + "\n")
     return Checkpoint(final, step)
-
-
-def sha256_file(path: Path) -> str:
-    """Hex SHA-256 of a file, read in 1 MiB blocks."""
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        while block := f.read(1 << 20):
-            h.update(block)
-    return h.hexdigest()
-
-
-def list_checkpoints(run_dir: Path) -> list[Checkpoint]:
-    """Complete checkpoint folders, oldest first (temporary siblings of a killed write are ignored)."""
-    root = Path(run_dir) / CHECKPOINT_DIR
-    out = []
-    if root.is_dir():
-        for p in root.iterdir():
-            m = _NAME.match(p.name)
-            if m and (p / "model.safetensors").is_file() and (p / "state.pt").is_file():
-                out.append(Checkpoint(p, int(m.group(1))))
-    return sorted(out, key=lambda c: c.step)
-
-
-def latest_checkpoint(run_dir: Path) -> Checkpoint | None:
-    cks = list_checkpoints(run_dir)
-    return cks[-1] if cks else None
-
-
-def verify_checkpoint(ck: Checkpoint) -> bool:
-    """Check ``ck``'s files against its ``checksums.json``; False when the folder predates checksums.
-
-    Raises :class:`CheckpointError` naming the file and the problem: a missing or unreadable
-    checksum file entry, a size or SHA-256 that differs.
-    """
-    sums_path = ck.path / CHECKSUM_FILE
-    if not sums_path.exists():
-        return False
-    try:
-        sums = json.loads(sums_path.read_text(encoding="utf-8"))
-    except (OSError, ValueError) as e:
-        raise CheckpointError(sums_path, f"unreadable checksums ({e})") from None
-    for name in _FILES:
-        entry = sums.get(name) if isinstance(sums, dict) else None
-        if not isinstance(entry, dict) or not isinstance(entry.get("sha256"), str) or type(entry.get("bytes")) is not int:
-            raise CheckpointError(sums_path, f"no size and sha256 for {name}")
-        path = ck.path / name
-        try:
-            size = path.stat().st_size
-            if size != entry["bytes"]:
-                raise CheckpointError(path, f"is {size} bytes, its checksum says {entry['bytes']} (truncated or damaged)")
-            if sha256_file(path) != entry["sha256"]:
-                raise CheckpointError(path, "SHA-256 differs from checksums.json (damaged)")
-        except OSError as e:
-            raise CheckpointError(path, f"unreadable ({e.strerror or e})") from None
-    return True
 
 
 def load_checkpoint(ck: Checkpoint, model: torch.nn.Module, device: torch.device | str = "cpu") -> dict[str, Any]:
@@ -181,17 +110,6 @@ def resume_checkpoint(run_dir: Path, model: torch.nn.Module, device: torch.devic
         raise CheckpointError(run_dir, f"every checkpoint is damaged (newest: {damaged[0][1]}); "
                                        "pass --force to start the run over")
     return None, None
-
-
-def intact_checkpoint(run_dir: Path) -> Checkpoint | None:
-    """The newest checkpoint whose files match their checksums (older folders without checksums count)."""
-    for ck in reversed(list_checkpoints(run_dir)):
-        try:
-            verify_checkpoint(ck)
-        except CheckpointError:
-            continue
-        return ck
-    return None
 
 
 def prune_checkpoints(run_dir: Path, keep_every: int) -> None:

@@ -28,6 +28,7 @@ import torch.distributed as dist
 
 from mcdenoise.errors import McDenoiseError
 from mcdenoise.io.atomic import atomic_file
+from mcdenoise.io.run_folder import CONFIG_FILE, RESULT_FILE, WEIGHTS_FILE, checkpoint_folder_name
 from mcdenoise.models.registry import Denoiser, build_model
 from mcdenoise.models.weights import WeightsError, model_from_config
 from mcdenoise.train.checkpoint import CHECKPOINT_DIR, Checkpoint, intact_checkpoint, load_checkpoint, prune_checkpoints, \
@@ -39,10 +40,6 @@ from mcdenoise.train.runlog import MetricsLog, plot_loss
 from mcdenoise.train.trainer import Trainer, data_config
 
 __all__ = ["train", "TrainResult", "prepare_run_dir", "CONFIG_FILE", "WEIGHTS_FILE"]
-
-CONFIG_FILE = "config.json"
-WEIGHTS_FILE = "model.safetensors"
-RESULT_FILE = "result.json"
 
 
 @dataclass
@@ -252,7 +249,7 @@ def _train(cfg: TrainConfig, out: Path, resume: bool, force: bool, on_step: Call
     wall_before = 0.0  # wall time of earlier calls, up to the checkpoint resumed from
     if start > 0:
         if st is None:  # the other ranks load the checkpoint rank 0 chose
-            st = load_checkpoint(Checkpoint(out / CHECKPOINT_DIR / f"step_{start:08d}", start), model, device)
+            st = load_checkpoint(Checkpoint(out / CHECKPOINT_DIR / checkpoint_folder_name(start), start), model, device)
         skipped = trainer.load_state(st)
         wall_before = float(st.get("wall_s", 0.0))
     if start >= cfg.steps:

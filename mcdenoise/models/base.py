@@ -1,0 +1,94 @@
+"""What every denoiser is built on: the :class:`Denoiser` base class, the registration decorator
+:func:`register_model` and the table :data:`MODELS` it fills.
+
+The model modules (``kpcn``, ``sbmc``, ``layer``, ``wskp``, ``wskp_mr``) import this module only;
+looking models up by name and building them is :mod:`mcdenoise.models.registry`, one layer up.
+The batch convention the models share is described there too.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import Any, Callable, ClassVar
+
+import torch
+from torch import nn
+
+__all__ = ["Denoiser", "ModelEntry", "MODELS", "register_model"]
+
+
+class Denoiser(nn.Module):
+    """Base class of all registered models.
+
+    Subclasses set ``input_kind`` and implement :meth:`required_channels` and :meth:`forward`.
+    """
+
+    input_kind: ClassVar[str] = "pixels"  # "pixels" or "samples"
+
+    def __init__(self, config: Any) -> None:
+        super().__init__()
+        self.config = config
+
+    def required_channels(self) -> list[str]:
+        """Names (vocabulary or ``*_variance``) that :meth:`forward` reads from the batch."""
+        raise NotImplementedError
+
+    def forward(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:  # (B, 3, H, W)
+        raise NotImplementedError
+
+    def conv_trunks(self) -> list[str]:
+        """Dotted names of the submodules that may run in bfloat16 and channels_last at inference
+        (:func:`mcdenoise.models.inference.prepare_inference` with ``precision="bfloat16"``).
+
+        A trunk maps feature maps to feature maps with convolutions, activations, pooling and
+        resampling only: no exponentials, normalisations or kernel application, which stay in
+        float32. Default: every :class:`~mcdenoise.models.blocks.UNet` of the model.
+        """
+        from mcdenoise.models.blocks import UNet
+
+        return [n for n, m in self.named_modules() if isinstance(m, UNet)]
+
+
+@dataclass
+class ModelEntry:
+    name: str
+    cls: type[Denoiser]
+    config_cls: type
+    presets: dict[str, Callable[[], Any]]
+    paper: str = ""
+    description: str = ""
+
+    def config(self, preset: str = "small", **overrides: Any) -> Any:
+        if preset not in self.presets:
+            raise KeyError(f"model {self.name!r} has no preset {preset!r}; presets: {sorted(self.presets)}")
+        cfg = self.presets[preset]()
+        return dataclasses.replace(cfg, **overrides) if overrides else cfg
+
+
+MODELS: dict[str, ModelEntry] = {}
+
+
+def register_model(
+    name: str,
+    *,
+    config_cls: type,
+    presets: dict[str, Callable[[], Any]],
+    paper: str = "",
+    description: str = "",
+) -> Callable[[type[Denoiser]], type[Denoiser]]:
+    """Class decorator: ``@register_model("kpcn", config_cls=KPCNConfig, presets={...})``.
+
+    ``presets`` must contain at least ``"paper"`` and ``"small"``.
+    """
+
+    def deco(cls: type[Denoiser]) -> type[Denoiser]:
+        if name in MODELS:
+            raise ValueError(f"model {name!r} registered twice")
+        missing = {"paper", "small"} - set(presets)
+        if missing:
+            raise ValueError(f"model {name!r} lacks presets {sorted(missing)}")
+        MODELS[name] = ModelEntry(name, cls, config_cls, dict(presets), paper, description)
+        return cls
+
+    return deco
