@@ -70,3 +70,73 @@ def test_unexportable_model_is_refused_in_one_line(tmp_path, capfd):
     err = [ln for ln in capfd.readouterr().err.splitlines() if ln.strip()]
     assert rc == 1 and len(err) == 1 and "cannot be exported" in err[0], err
     assert not out.exists()
+
+
+def _works_or_refuses(model, path, fmt, size, spp) -> str:
+    """"ok" when the exported file matches PyTorch at ``size``/``spp``, "refused" when it raises;
+    fails the test when it returns anything else (a silently wrong result)."""
+    from mcdenoise.infer.export import run_exported
+
+    batch, args = _sample_input(model, size, spp)
+    try:
+        got = run_exported(path, fmt, tuple(args))
+    except Exception:  # torch.jit / onnxruntime raise their own types
+        return "refused"
+    with torch.no_grad():
+        want = model(batch)
+    assert got.shape == want.shape, (size, spp)
+    err = float((got - want).abs().max() / want.abs().max())
+    assert err <= 1e-4, f"{type(model).__name__} {fmt} at {size} {spp} spp: silently wrong (relative error {err:.2f})"
+    return "ok"
+
+
+def _exportable() -> list[str]:
+    from mcdenoise.models.registry import MODELS, _load_all
+
+    _load_all()
+    return sorted(MODELS)
+
+
+@pytest.mark.parametrize("name", _exportable())
+def test_torchscript_works_or_refuses_at_every_size_and_spp(name, tmp_path):
+    """Catches issue 22 item 6: `export --model layer --format torchscript --size 32x32 --spp 4` ran
+    at 8 spp with relative error 0.60 and no refusal. For every model that exports, the file
+    matches PyTorch at each size and spp it accepts and raises at the others; its JSON declares
+    the fixed H, W (and S) when it is not any-size."""
+    from mcdenoise.infer.export import ExportError, export_model
+
+    torch.manual_seed(0)
+    model = build_model(name, "small").eval()
+    out = tmp_path / f"{name}.pt"
+    try:
+        desc = export_model(model, out, "torchscript", example_size=(32, 32), spp=4)
+    except ExportError as e:
+        assert "cannot be exported" in str(e) and "\n" not in str(e)
+        assert not out.exists()
+        return
+    sample = model.input_kind == "samples"
+    assert _works_or_refuses(model, out, "torchscript", (32, 32), 4) == "ok"
+    results = [_works_or_refuses(model, out, "torchscript", size, spp)
+               for size, spp in (((32, 32), 8), ((32, 32), 2), ((40, 36), 4), ((19, 23), 3))]
+    if desc["any_size"]:
+        assert results == ["ok"] * 4
+    else:
+        assert "refused" in results
+        shape = desc["inputs"][0]["shape"]
+        assert shape[-2:] == ["32", "32"] and (not sample or shape[1] == "4"), shape
+
+
+def test_onnx_json_declares_the_fixed_size(tmp_path, capfd):
+    """Catches issue 22 item 6's ONNX half: the file refused other sizes but its JSON declared
+    symbolic H, W."""
+    pytest.importorskip("onnxruntime")
+    model, weights = _weights(tmp_path, "wskp")
+    out = tmp_path / "w.onnx"
+    assert main(["export", "--model", weights, "--format", "onnx", "-o", str(out), "--size", "24x20"]) == 0, \
+        capfd.readouterr().err
+    desc = json.loads((tmp_path / "w.onnx.json").read_text())
+    assert _works_or_refuses(model, out, "onnx", (24, 20), 1) == "ok"
+    if not desc["any_size"]:
+        assert _works_or_refuses(model, out, "onnx", (30, 22), 1) == "refused"
+        assert all(i["shape"][-2:] == ["24", "20"] for i in desc["inputs"]), desc["inputs"]
+        assert desc["output"]["shape"] == ["1", "3", "24", "20"]
