@@ -91,10 +91,9 @@ def _works_or_refuses(model, path, fmt, size, spp) -> str:
 
 
 def _exportable() -> list[str]:
-    from mcdenoise.models.registry import MODELS, _load_all
+    from mcdenoise.models import list_models
 
-    _load_all()
-    return sorted(MODELS)
+    return sorted(e.name for e in list_models())
 
 
 @pytest.mark.parametrize("name", _exportable())
