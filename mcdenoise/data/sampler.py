@@ -32,6 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
+from mcdenoise.color import luminance
 from mcdenoise.data.channels import base_name, is_variance_name
 from mcdenoise.data.format import ImageFolder, pixel_stats
 
@@ -41,7 +42,6 @@ SAMPLINGS = ("uniform", "importance")
 TARGETS = ("reference", "noisy")
 #: Windows scoring above this quantile of an image's window scores are always accepted.
 ACCEPT_QUANTILE = 0.9
-_LUM = np.array([0.2126, 0.7152, 0.0722], np.float64)
 
 
 @dataclass
@@ -98,8 +98,8 @@ def importance_map(noisy: dict[str, np.ndarray], reference: dict[str, np.ndarray
         reference: reference buffers or None.
     """
     rad = noisy["radiance"].astype(np.float64)
-    lum = np.tensordot(_LUM, rad, axes=1)
-    var = np.tensordot(_LUM, noisy["radiance_variance"].astype(np.float64), axes=1)
+    lum = luminance(rad, 0)
+    var = luminance(noisy["radiance_variance"].astype(np.float64), 0)
     score = _unit_mean(var / (lum * lum + 1e-2))
     if "normal" in noisy:
         geo = _grad_mag(noisy["normal"].astype(np.float64))

@@ -28,6 +28,7 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
+from mcdenoise.color import luminance
 from mcdenoise.data.channels import variance_name
 from mcdenoise.models.base import Denoiser, register_model
 from mcdenoise.ops.gather import gather, gather_rows
@@ -35,8 +36,6 @@ from mcdenoise.ops.kernels import softmax_kernel
 
 __all__ = ["KPCNConfig", "KPCN", "kpcn_features", "FEATURES_PER_BRANCH"]
 
-#: Rec. 709 luminance weights, used to turn RGB variances into one channel (Sec. 5.1).
-_LUM = (0.2126, 0.7152, 0.0722)
 #: colour (3) + gradients x/y of colour, normal, albedo, depth (2 x 10) + colour variance (1) +
 #: normal, albedo, depth variances (3).
 FEATURES_PER_BRANCH = 27
@@ -78,9 +77,8 @@ class KPCNConfig:
 
 
 def _lum(x: torch.Tensor) -> torch.Tensor:
-    """(B, 3, H, W) -> (B, 1, H, W) luminance."""
-    w = x.new_tensor(_LUM).view(1, 3, 1, 1)
-    return (x * w).sum(dim=1, keepdim=True)
+    """(B, 3, H, W) -> (B, 1, H, W) luminance (Rec. 709 weights), e.g. of RGB variances (Sec. 5.1)."""
+    return luminance(x, 1, keepdims=True)
 
 
 def _grad_xy(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

@@ -8,7 +8,6 @@ from mcdenoise.render.api import (
     SAMPLE_CHANNELS,
     RenderSettings,
     builtin_motion,
-    derive_seed,
     iter_sample_chunks,
     list_builtin_scenes,
     load_scene,
@@ -16,6 +15,7 @@ from mcdenoise.render.api import (
     render_reference,
     render_samples,
     scene_features,
+    stream_seed,
 )
 
 __all__ = [
@@ -23,7 +23,6 @@ __all__ = [
     "SAMPLE_CHANNELS",
     "RenderSettings",
     "builtin_motion",
-    "derive_seed",
     "iter_sample_chunks",
     "list_builtin_scenes",
     "load_scene",
@@ -31,4 +30,5 @@ __all__ = [
     "render_reference",
     "render_samples",
     "scene_features",
+    "stream_seed",
 ]

@@ -20,7 +20,8 @@ Seeds, times and sizes reach the kernels as opaque values, so a new seed or time
 Where each concern lives (this module re-exports the public names, so ``mcdenoise.render.api``
 imports keep working):
 
-* :mod:`~mcdenoise.render.settings`: :class:`RenderSettings`, channel lists, ``derive_seed``;
+* :mod:`~mcdenoise.render.settings`: :class:`RenderSettings`, channel lists;
+* :mod:`~mcdenoise.render.seeds`: ``stream_seed`` (the renderer's streams) and ``derive_seed`` (scenes);
 * :mod:`~mcdenoise.render.scene_loading`: ``load_scene`` at a film size, built-in scenes, features;
 * :mod:`~mcdenoise.render.prepare`: integrator + sensor set-up and restore around a render;
 * :mod:`~mcdenoise.render.motion`: object poses, time slices, moving camera rays;
@@ -42,8 +43,8 @@ from mcdenoise.render.settings import (
     REFERENCE_CHANNELS,
     SAMPLE_CHANNELS,
     RenderSettings,
-    derive_seed,
 )
+from mcdenoise.render.seeds import stream_seed
 
 __all__ = [
     "RenderSettings",
@@ -57,7 +58,7 @@ __all__ = [
     "iter_sample_chunks",
     "render_reference",
     "render_image",
-    "derive_seed",
+    "stream_seed",
     "MAX_SIZE",
     "MAX_SPP",
 ]

@@ -10,7 +10,7 @@ import numpy as np
 from mcdenoise.errors import SceneError
 from mcdenoise.render._mitsuba import mitsuba
 from mcdenoise.render.prepared import _Prepared
-from mcdenoise.render.settings import derive_seed
+from mcdenoise.render.seeds import stream_seed
 
 
 def _pose_objects(prep: _Prepared, t: float) -> None:
@@ -108,6 +108,6 @@ def _move_camera_rays(ray: Any, t: Any, prep: _Prepared) -> Any:
 
 def _slice_times(seed: int, spp: int) -> np.ndarray:
     """Stratified slice times (s + u_s) / S, one per sample index."""
-    rng = np.random.default_rng(derive_seed(seed, 0x51CE))
+    rng = np.random.default_rng(stream_seed(seed, 0x51CE))
     return (np.arange(spp) + rng.random(spp)) / spp
 

@@ -11,7 +11,8 @@ from mcdenoise.errors import SceneError
 from mcdenoise.render.integrator import LEVEL_REFERENCE
 from mcdenoise.render.motion import _pose_objects, _slice_times
 from mcdenoise.render.prepare import _prepare, _restore
-from mcdenoise.render.settings import REFERENCE_CHANNELS, RenderSettings, derive_seed
+from mcdenoise.render.seeds import stream_seed
+from mcdenoise.render.settings import REFERENCE_CHANNELS, RenderSettings
 from mcdenoise.render.trace import _row_bands, _trace_chunk
 
 __all__ = ["render_reference"]
@@ -46,7 +47,7 @@ def render_reference(
             # motion-blurred image like the input does.
             n_slices = min(spp, settings.ref_time_slices)
             per = [spp // n_slices + (1 if i < spp % n_slices else 0) for i in range(n_slices)]
-            times = _slice_times(derive_seed(seed, 3), n_slices)
+            times = _slice_times(stream_seed(seed, 3), n_slices)
             passes = [(float(t), k, i) for i, (t, k) in enumerate(zip(times, per))]
         else:
             per_pass = max(1, min(spp, settings.chunk_samples // max(1, W * H)))
@@ -62,7 +63,7 @@ def render_reference(
                 _pose_objects(prep, t)
             bands = _row_bands(W, H, k, settings.chunk_samples)
             for b, rows in enumerate(bands):
-                out = _trace_chunk(scene, prep, rows=rows, spp=k, seed=derive_seed(seed, 4, i, b), level=LEVEL_REFERENCE,
+                out = _trace_chunk(scene, prep, rows=rows, spp=k, seed=stream_seed(seed, 4, i, b), level=LEVEL_REFERENCE,
                                    time_override=t, record_position=False, reduce=True)
                 for name, v in out.items():
                     if name not in sums:

@@ -10,7 +10,8 @@ from mcdenoise.render.integrator import LEVEL_FULL
 from mcdenoise.render.motion import _pose_objects, _slice_times
 from mcdenoise.render.prepare import _prepare, _restore
 from mcdenoise.render.scene_loading import scene_features
-from mcdenoise.render.settings import RenderSettings, derive_seed
+from mcdenoise.render.seeds import stream_seed
+from mcdenoise.render.settings import RenderSettings
 from mcdenoise.render.trace import _row_bands, _trace_chunk
 
 __all__ = ["iter_sample_chunks", "render_samples"]
@@ -42,7 +43,7 @@ def iter_sample_chunks(
             bands = _row_bands(W, H, S, settings.chunk_samples)
             for i, rows in enumerate(bands):
                 # One band: the seed itself, so that the result equals mi.render at that seed.
-                s = seed if len(bands) == 1 else derive_seed(seed, 1, i)
+                s = seed if len(bands) == 1 else stream_seed(seed, 1, i)
                 out = _trace_chunk(scene, prep, rows=rows, spp=S, seed=s, level=LEVEL_FULL, time_override=None,
                                    record_position=record_position, reduce=False, keep=keep)
                 yield slice(0, S), rows, out
@@ -52,7 +53,7 @@ def iter_sample_chunks(
             for si, t in enumerate(times):
                 _pose_objects(prep, float(t))
                 for i, rows in enumerate(bands):
-                    out = _trace_chunk(scene, prep, rows=rows, spp=1, seed=derive_seed(seed, 2, si, i), level=LEVEL_FULL,
+                    out = _trace_chunk(scene, prep, rows=rows, spp=1, seed=stream_seed(seed, 2, si, i), level=LEVEL_FULL,
                                        time_override=float(t), record_position=record_position, reduce=False, keep=keep)
                     yield slice(si, si + 1), rows, out
     finally:

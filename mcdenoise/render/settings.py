@@ -1,4 +1,4 @@
-"""What to render: :class:`RenderSettings`, the per-sample channel list and seed derivation."""
+"""What to render: :class:`RenderSettings` and the per-sample channel list."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import numpy as np
 
 from mcdenoise.errors import SceneError
 
-__all__ = ["RenderSettings", "SAMPLE_CHANNELS", "REFERENCE_CHANNELS", "MAX_SIZE", "MAX_SPP", "derive_seed"]
+__all__ = ["RenderSettings", "SAMPLE_CHANNELS", "REFERENCE_CHANNELS", "MAX_SIZE", "MAX_SPP"]
 
 #: Per-sample channels the renderer can record, in the order it writes them.
 SAMPLE_CHANNELS: tuple[str, ...] = (
@@ -95,10 +95,3 @@ class RenderSettings:
             return SAMPLE_CHANNELS
         want = set(self.channels) | {"radiance"}
         return tuple(c for c in SAMPLE_CHANNELS if c in want)
-
-
-def derive_seed(seed: int, *keys: int) -> int:
-    """A 32-bit seed derived from ``seed`` and ``keys`` (independent streams per key tuple)."""
-    ss = np.random.SeedSequence([int(seed) & 0xFFFFFFFF, 0x6D63646E, *[int(k) & 0xFFFFFFFF for k in keys]])
-    return int(ss.generate_state(1, dtype=np.uint32)[0])
-

@@ -7,6 +7,7 @@ from typing import Any
 
 import numpy as np
 
+from mcdenoise.color import luminance
 from mcdenoise.render._mitsuba import mitsuba
 from mcdenoise.render.procedural.loading import load_procedural
 from mcdenoise.render.procedural.scene import ProceduralScene
@@ -78,7 +79,7 @@ def preview_stats(
     arrays, _ = render_samples(scene, settings, record_position=record_position)
     img = arrays["radiance"].mean(axis=0, dtype=np.float64).transpose(1, 2, 0)
     del arrays
-    lum = img @ np.array([0.2126, 0.7152, 0.0722])
+    lum = luminance(img)
     is_obj = _object_mask(mi, scene, settings.width, settings.height)
     finite = bool(np.isfinite(img).all())
     mean = float(lum.mean()) if finite else 0.0

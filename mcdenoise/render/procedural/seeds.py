@@ -1,7 +1,8 @@
 """Seeds and seeded random choices of the scene generator.
 
 Every random number of a scene comes from one ``numpy.random.default_rng(seed)``; seeds of
-re-drawn scenes, views and previews are derived from integers with :func:`derive_seed` (no clock).
+re-drawn scenes, views and previews are derived from integers with :func:`derive_seed` (no clock;
+defined in :mod:`mcdenoise.render.seeds` beside the renderer's ``stream_seed``).
 """
 
 from __future__ import annotations
@@ -10,14 +11,9 @@ import math
 
 import numpy as np
 
+from mcdenoise.render.seeds import derive_seed
+
 __all__ = ["derive_seed"]
-
-
-def derive_seed(*ints: int) -> int:
-    """A 31-bit seed derived from integers, e.g. ``(dataset_seed, image_index)`` (no clock)."""
-    ss = np.random.SeedSequence([int(i) & 0xFFFFFFFFFFFFFFFF for i in ints])
-    return int(ss.generate_state(1, np.uint32)[0] >> 1)
-
 
 
 def _choice(rng: np.random.Generator, table: dict[str, float]) -> str:
