@@ -215,3 +215,22 @@ def test_force_never_writes_into_an_input_folder(tmp_path, capfd):
                      "-o", str(folder / "clean.exr")], "inside the input folder")
     assert {p.name: p.read_bytes() for p in folder.iterdir()} == before
     assert not (tmp_path / "x.exr").exists()
+
+
+def test_max_memory_below_the_minimum_tile_is_refused(tmp_path, wskp, capfd):
+    """Catches issue 22 item 7: `--max-memory 1K` silently planned 1-px tiles (16,384 tiles, 65x
+    slower); it must be one line naming the minimum, and that minimum must then be accepted."""
+    import re
+
+    src = tmp_path / "r.exr"
+    _blender_exr(src, size=(128, 128))
+    argv = ["denoise", str(src), "--model", wskp, "--precision", "float32"]
+    _refused(capfd, [*argv, "-o", str(tmp_path / "a.exr"), "--max-memory", "1K"], "--max-memory", "minimum", "at least")
+    rc = main([*argv, "-o", str(tmp_path / "a.exr"), "--max-memory", "1K"])
+    minimum = re.search(r"at least --max-memory (\d+M)", capfd.readouterr().err).group(1)
+    assert rc == 1
+    rc = main([*argv, "-o", str(tmp_path / "b.exr"), "--max-memory", minimum])
+    cap = capfd.readouterr()
+    assert rc == 0, cap.err
+    tiles = re.search(r"ran (\d+) tiles of (\d+) px", cap.out)
+    assert tiles is None or int(tiles.group(2)) >= 32, cap.out

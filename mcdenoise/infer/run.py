@@ -5,16 +5,20 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
+import math
+
 import numpy as np
 import torch
 
+from mcdenoise.errors import McDenoiseError
 from mcdenoise.infer.memory import DEFAULT_MAX_MEMORY, MemoryCost, measure_cost
 from mcdenoise.infer.receptive import alignment, receptive_field
 from mcdenoise.infer.sources import Inputs
 from mcdenoise.infer.tiling import TilePlan, plan_tiles, run_tiled
 from mcdenoise.models.registry import Denoiser
 
-__all__ = ["default_device", "memory_cost", "tile_plan", "denoise_inputs", "RunInfo", "BUDGET_FRACTION", "describe_plan"]
+__all__ = ["default_device", "memory_cost", "tile_plan", "denoise_inputs", "RunInfo", "BUDGET_FRACTION", "describe_plan",
+           "MIN_CORE", "BudgetError"]
 
 #: Share of ``max_memory`` given to one tile's model call; the rest holds the whole-image output,
 #: the reader's staging buffers (a window is read in its storage dtype, then converted) and Python.
@@ -23,6 +27,29 @@ BUDGET_FRACTION = 0.75
 #: Images up to this many pixels run as one tile without measuring the model's memory cost (the
 #: measurement's own probe is as large).
 SMALL_IMAGE = 64 * 64
+
+#: Smallest tile core (pixels a side, rounded up to the model's alignment) a memory budget may
+#: ask for: smaller cores spend nearly all their time on the overlap (a 1 K budget planned 16,384
+#: one-pixel tiles and ran 65x slower), so such a budget is refused instead.
+MIN_CORE = 32
+
+
+class BudgetError(McDenoiseError):
+    """``--max-memory`` is below what the smallest useful tile of the model needs."""
+
+
+def _mib(n: float) -> str:
+    """Bytes rounded up to whole MiB, as ``--max-memory`` reads it (``"3M"``)."""
+    return f"{math.ceil(n / (1 << 20))}M"
+
+
+def _binary(n: float) -> str:
+    """Bytes in the largest binary unit of ``--max-memory`` that fits (``"1K"``, ``"1.5G"``)."""
+    for unit, suffix in ((1 << 30, "G"), (1 << 20, "M"), (1 << 10, "K")):
+        if n >= unit:
+            return f"{n / unit:.4g}{suffix}"
+    return f"{int(n)}"
+
 
 _COSTS: dict[tuple[str, str, int, str], MemoryCost] = {}
 
@@ -52,11 +79,22 @@ def tile_plan(model: Denoiser, height: int, width: int, *, spp: int = 1, device:
         return plan_tiles(height, width, receptive=receptive_field(model), align=alignment(model), core=int(tile))
     if height * width <= SMALL_IMAGE:
         return plan_tiles(height, width, receptive=0)  # one tile; nothing to measure
-    budget = (max_memory or DEFAULT_MAX_MEMORY) * BUDGET_FRACTION - 3 * height * width * 4  # minus the output
-    window = memory_cost(model, spp, device).max_pixels(budget)
+    total = max_memory or DEFAULT_MAX_MEMORY
+    budget = total * BUDGET_FRACTION - 3 * height * width * 4  # minus the output
+    cost = memory_cost(model, spp, device)
+    window = cost.max_pixels(budget)
     if height * width <= window:
         return plan_tiles(height, width, receptive=0)  # fits whole: the receptive field is not needed
-    return plan_tiles(height, width, receptive=receptive_field(model), align=alignment(model), max_window_pixels=window)
+    align = alignment(model)
+    plan = plan_tiles(height, width, receptive=receptive_field(model), align=align, max_window_pixels=window)
+    core = min(math.ceil(MIN_CORE / align) * align, max(height, width))
+    if plan.core < core:
+        side = core + 2 * plan.overlap
+        need = (cost.bytes(side * side) + 3 * height * width * 4) / BUDGET_FRACTION
+        raise BudgetError(f"--max-memory {_binary(total)}: below the minimum for {type(model).__name__} on this "
+                          f"{width}x{height} image: its smallest tile ({core} px + {plan.overlap} px overlap a side, "
+                          f"{spp} spp) needs {_mib(need)}; give at least --max-memory {_mib(need)}, or --tile N")
+    return plan
 
 
 @dataclass
