@@ -1,4 +1,5 @@
-"""Damaged checkpoints are found and passed over on --resume (issue 22 item 2).
+"""Damaged checkpoints are found and passed over on --resume (issue 22 item 2); one writer per
+run folder (item 8).
 
 A resume verifies each checkpoint's ``checksums.json`` (and, for folders written before checksums,
 that the files load) and falls back to the newest intact checkpoint with one line saying so; it
@@ -131,3 +132,32 @@ def test_checkpoint_byte_flip_sweep(tmp_path) -> None:
                 path.write_bytes(good)
             assert all(torch.equal(other.state_dict()[k], v) for k, v in want.items()), (name, i)
             assert torch.equal(got["rng_cpu"], state["rng_cpu"]), (name, i)
+
+
+def test_one_writer_per_run_folder(runs, tmp_path, capfd) -> None:
+    """Catches issue 22 item 8: concurrent `--resume` x3 or `--force` mid-run both ran, and one died
+    late with an AssertionError traceback or a rename error. While a live process holds the run's
+    lock, both are refused in one line and the folder is left as it was; a dead holder's lock is
+    taken over, and a finished run leaves no lock behind."""
+    import os
+    import subprocess
+
+    from mcdenoise.io import safety
+    from mcdenoise.train.loop import run_lock_path
+
+    data, ref = runs
+    run = _killed_after_6(ref, tmp_path / "run")
+    before = sorted(p.name for p in run.rglob("*"))
+    lock = run_lock_path(run)
+    with safety.WriterLock(lock, "another train"):  # this (live) process plays the running trainer
+        for extra in (["--resume"], ["--force"]):
+            capfd.readouterr()
+            assert main(["train", *RUN, "--data", str(data), "--out", str(run), "--steps", "8", *extra]) == 1
+            err = [ln for ln in capfd.readouterr().err.splitlines() if ln.strip()]
+            assert len(err) == 1 and "another mcdenoise run is writing here" in err[0], err
+            assert sorted(p.name for p in run.rglob("*")) == before
+    dead = subprocess.Popen(["true"])
+    dead.wait()
+    lock.write_text(__import__("json").dumps({"pid": dead.pid, "host": safety._HOST, "what": "killed"}))
+    assert main(["train", *RUN, "--data", str(data), "--out", str(run), "--steps", "8", "--resume"]) == 0
+    assert not lock.exists() and os.path.isfile(run / "model.safetensors")

@@ -28,6 +28,7 @@ import torch.distributed as dist
 
 from mcdenoise.errors import McDenoiseError
 from mcdenoise.io.atomic import atomic_file
+from mcdenoise.io.safety import WriterLock
 from mcdenoise.io.run_folder import CONFIG_FILE, RESULT_FILE, WEIGHTS_FILE, checkpoint_folder_name
 from mcdenoise.models.registry import Denoiser, build_model
 from mcdenoise.models.weights import WeightsError, model_from_config
@@ -146,6 +147,12 @@ def prepare_run_dir(out: Path, doc: dict[str, Any], *, resume: bool, force: bool
     return 0, True
 
 
+def run_lock_path(out: Path) -> Path:
+    """The writer lock of run folder ``out``: ``.<name>.train.lock`` beside it."""
+    out = Path(out).resolve()
+    return out.parent / f".{out.name}.train.lock"
+
+
 def _broadcast_start(start: int, ok: bool, distributed: bool, device: torch.device) -> int:
     """Share rank 0's start step (or its refusal) with every rank."""
     if not distributed:
@@ -185,15 +192,19 @@ def train(
     rank, world, local_rank = _dist_env()
     device = _device(cfg, local_rank)
     distributed = _init_distributed(device, world)
+    locks: list[WriterLock] = []
     try:
-        return _train(cfg, Path(out), resume, force, on_step, rank, world, device, distributed, t_start)
+        return _train(cfg, Path(out), resume, force, on_step, rank, world, device, distributed, t_start, locks)
     finally:
+        for lock in locks:
+            lock.release()
         if distributed and dist.is_initialized():
             dist.destroy_process_group()
 
 
 def _train(cfg: TrainConfig, out: Path, resume: bool, force: bool, on_step: Callable[[int, StepOutcome], None] | None,
-           rank: int, world: int, device: torch.device, distributed: bool, t_start: float) -> TrainResult:
+           rank: int, world: int, device: torch.device, distributed: bool, t_start: float,
+           locks: list[WriterLock]) -> TrainResult:
     data_dir = Path(cfg.data)
     if not (data_dir / "manifest.json").is_file():
         raise ConfigError(f"{data_dir}: not a dataset folder (no manifest.json); make one with `mcdenoise dataset`")
@@ -234,6 +245,9 @@ def _train(cfg: TrainConfig, out: Path, resume: bool, force: bool, on_step: Call
     st: dict[str, Any] | None = None
     if rank == 0:
         try:
+            # One writer per run folder: a second --resume or --force while this run lives is
+            # refused in one line (the lock sits beside the folder, so --force's rmtree keeps it).
+            locks.append(WriterLock(run_lock_path(out), f"train {out.name}").acquire())
             _, fresh = prepare_run_dir(out, doc, resume=resume, force=force)
             if not fresh:  # the newest intact checkpoint (damaged newer ones are named and passed over)
                 ck, st = resume_checkpoint(out, model, "cpu")
