@@ -178,7 +178,8 @@ def test_rejected_scene_is_redrawn_from_derived_seed(monkeypatch: pytest.MonkeyP
 
     calls: list[int] = []
 
-    def fake_draw(seed: int, kind: str | None, w: int, h: int, objects: tuple[int, int]) -> P.ProceduralScene:
+    def fake_draw(seed: int, kind: str | None, w: int, h: int, objects: tuple[int, int],
+                  world: str = "classic") -> P.ProceduralScene:
         calls.append(seed)
         ps = P.ProceduralScene(scene={"sky": {"type": "envmap", "scale": 1.0}}, seed=seed, drawn_seed=seed,
                                attempts=0, kind="outdoor", camera_to_world=np.eye(4), fov=40.0,

@@ -75,6 +75,9 @@ def add_parser(p: argparse.ArgumentParser) -> None:
                         "scene (default 1)")
     add_variant_argument(p)
     p.add_argument("--kind", choices=("indoor", "outdoor"), default=None, help="only this kind of scene (default both)")
+    p.add_argument("--world", choices=("classic", "rich"), default="classic",
+                   help="procedural world: classic, or rich (window-lit rooms, small bright emitters, night, "
+                        "exposure over 2.3 decades; docs/DATASETS.md) (default classic)")
     p.add_argument("--max-depth", type=int, default=6, help="path depth of input and reference (default 6)")
     p.add_argument("--objects", default="10-50", help="MIN-MAX objects per scene (default 10-50)")
     p.add_argument("--split", default="0.8,0.1,0.1", help="train,val,test fractions of scenes (default 0.8,0.1,0.1)")
@@ -131,7 +134,7 @@ def run(args: argparse.Namespace) -> int:
     cfg = DatasetConfig(
         count=args.count, seed=args.seed, spp=args.spp, ref_spp=args.ref_spp, width=w, height=h,
         frames=args.frames, max_depth=args.max_depth, kind=args.kind, fractions=parse_split(args.split),
-        objects=parse_objects(args.objects), views=args.views,
+        objects=parse_objects(args.objects), views=args.views, world=args.world,
     )
     summary = render_dataset(args.out, cfg, shard=shard, shards=shards, progress=not args.no_progress,
                              log=lambda s: print(s, file=sys.stderr), nonfinite=args.nonfinite, max_bytes=max_bytes(args))

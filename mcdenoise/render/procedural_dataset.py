@@ -86,6 +86,8 @@ class DatasetConfig:
             scene's kernels compile once for all of them. Not combined with ``frames > 1``.
         generator: version of the scene pipeline (:data:`GENERATOR`); recorded so that a rerun
             never mixes images of two versions into one dataset.
+        world: ``classic`` (the original generator) or ``rich`` (window-lit rooms, small bright
+            emitters, night scenes, exposure over 2.3 decades: issue 19).
     """
 
     count: int
@@ -101,6 +103,7 @@ class DatasetConfig:
     objects: tuple[int, int] = (10, 50)
     views: int = 1
     generator: int = GENERATOR
+    world: str = "classic"
 
     def check(self) -> None:
         from mcdenoise.render.procedural import KINDS
@@ -117,6 +120,10 @@ class DatasetConfig:
         if self.generator != GENERATOR:
             raise SceneError(f"dataset: made by scene pipeline version {self.generator}; this mcdenoise renders "
                              f"version {GENERATOR} (render a new dataset)")
+        from mcdenoise.render.procedural.rich import WORLDS
+
+        if self.world not in WORLDS:
+            raise SceneError(f"dataset: world {self.world!r} is not one of {', '.join(WORLDS)}")
         if self.kind is not None and self.kind not in KINDS:
             raise SceneError(f"dataset: kind {self.kind!r} is not one of {', '.join(KINDS)}")
         lo, hi = self.objects
@@ -328,10 +335,10 @@ def render_procedural_image(
         def view0(ps: Any) -> Any:
             return _settings(cfg, derive_seed(scene_seed, 0, 1), ps=ps, camera=ps.camera_to_world,
                              camera_end=ps.camera_to_world_end)
-        ps = generate(scene_seed, kind=cfg.kind, width=cfg.width, height=cfg.height, objects=tuple(cfg.objects),
+        ps = generate(scene_seed, kind=cfg.kind, width=cfg.width, height=cfg.height, objects=tuple(cfg.objects), world=cfg.world,
                       settings=view0, keep_loaded=True)
     else:
-        ps = generate(scene_seed, kind=cfg.kind, width=cfg.width, height=cfg.height, objects=tuple(cfg.objects),
+        ps = generate(scene_seed, kind=cfg.kind, width=cfg.width, height=cfg.height, objects=tuple(cfg.objects), world=cfg.world,
                       settings=_settings(cfg, derive_seed(scene_seed, 0, 1)), record_position=True, keep_loaded=True)
     t1 = time.perf_counter()
     scene = ps.loaded

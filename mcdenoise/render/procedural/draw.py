@@ -14,7 +14,9 @@ from mcdenoise.render.procedural.camera import _sensor
 from mcdenoise.render.procedural.indoor import _indoor
 from mcdenoise.render.procedural.objects import MAX_OBJECTS, MIN_OBJECTS, _Builder
 from mcdenoise.render.procedural.outdoor import _outdoor
+from mcdenoise.render.procedural.rich import WORLDS, enrich
 from mcdenoise.render.procedural.scene import ProceduralScene
+from mcdenoise.render.procedural.seeds import derive_seed
 from mcdenoise.render.procedural.transforms import _rotate, _translate, look_at
 
 __all__ = ["KINDS"]
@@ -24,9 +26,13 @@ KINDS = ("indoor", "outdoor")
 
 
 def _draw(
-    seed: int, kind: str | None, width: int, height: int, objects: tuple[int, int] = (MIN_OBJECTS, MAX_OBJECTS)
+    seed: int, kind: str | None, width: int, height: int, objects: tuple[int, int] = (MIN_OBJECTS, MAX_OBJECTS),
+    world: str = "classic",
 ) -> ProceduralScene:
-    """Draw one scene from ``seed`` without any check."""
+    """Draw one scene from ``seed`` without any check; ``world`` is ``classic`` or ``rich``
+    (:mod:`~mcdenoise.render.procedural.rich`, drawn from a stream of its own)."""
+    if world not in WORLDS:
+        raise SceneError(f"unknown procedural world {world!r}; worlds: {', '.join(WORLDS)}")
     rng = np.random.default_rng(seed)
     kind = kind or str(rng.choice(KINDS))
     if kind not in KINDS:
@@ -39,6 +45,7 @@ def _draw(
     dof = bool(rng.random() < 0.5)
     motion = bool(rng.random() < 0.5)
     cam = (_indoor if kind == "indoor" else _outdoor)(b, n_objects)
+    rich = enrich(b, kind, np.random.default_rng(derive_seed(seed, 0x51C4))) if world == "rich" else None
     sensor, aperture, focus = _sensor(b, cam, width, height, dof)
     cam_close = None
     obj_motion: dict[str, list[float]] = {}
@@ -72,6 +79,8 @@ def _draw(
         "moving_objects": len(obj_motion),
         "camera_motion": cam_close is not None,
     }
+    if rich is not None:
+        info.update(world=world, rich=rich)
     return ProceduralScene(
         scene=b.scene,
         seed=seed,

@@ -18,6 +18,7 @@ from mcdenoise.render.procedural.exposure import _scale_emitters
 from mcdenoise.render.procedural.loading import load_procedural
 from mcdenoise.render.procedural.objects import MAX_OBJECTS, MIN_OBJECTS
 from mcdenoise.render.procedural.preview import preview_stats
+from mcdenoise.render.procedural.rich import EXPOSURE_RANGE
 from mcdenoise.render.procedural.scene import ProceduralScene
 from mcdenoise.render.procedural.seeds import _loguniform, derive_seed
 
@@ -39,8 +40,12 @@ def generate(
     settings: Any = None,
     record_position: bool = False,
     keep_loaded: bool = False,
+    world: str = "classic",
 ) -> ProceduralScene:
     """Draw a scene from ``seed``; with ``check``, re-draw rejected ones from derived seeds.
+
+    ``world``: ``classic`` (the original generator) or ``rich`` (windows, small bright emitters,
+    night, a wider exposure range: :mod:`~mcdenoise.render.procedural.rich`).
 
     ``width``/``height`` set the film in the dict. ``objects`` is the (min, max) number of
     objects: indoor scenes count their furniture pieces in it when there is room. JIT compilation
@@ -57,7 +62,7 @@ def generate(
     reasons: list[str] = []
     for attempt in range(max_attempts):
         drawn = seed if attempt == 0 else derive_seed(seed, attempt)
-        ps = _draw(drawn, kind, width, height, objects)
+        ps = _draw(drawn, kind, width, height, objects, world)
         ps.seed, ps.drawn_seed, ps.attempts = seed, drawn, attempt
         if keep_loaded:
             ps.loaded = load_procedural(ps, width, height)
@@ -72,9 +77,9 @@ def generate(
                               seed=derive_seed(drawn, 8) if keep_loaded else 0, record_position=record_position)
         problem = stats.problem()
         if problem is None:
-            # Exposure: bring the median luminance into [0.05, 0.5] (random in log space); the
+            # Exposure: bring the median luminance into the world's EXPOSURE_RANGE (random in log space); the
             # median ignores the sun and lamps seen directly, which dominate the mean.
-            target = _loguniform(np.random.default_rng(derive_seed(drawn, 7)), 0.05, 0.5)
+            target = _loguniform(np.random.default_rng(derive_seed(drawn, 7)), *EXPOSURE_RANGE[world])
             k = target / stats.median
             _scale_emitters(ps.scene, k)
             if ps.loaded is not None:

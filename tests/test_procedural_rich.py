@@ -1,0 +1,58 @@
+"""The rich procedural world (issue 19): windows, small bright emitters, night, wide exposure."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mcdenoise.errors import SceneError
+from mcdenoise.render import procedural as P
+from mcdenoise.render.procedural.rich import EXPOSURE_RANGE
+
+
+def _draws(world: str, n: int = 40) -> list[P.ProceduralScene]:
+    return [P._draw(s, None, 32, 32, (10, 20), world) for s in range(n)]
+
+
+def test_classic_draws_do_not_depend_on_the_rich_code() -> None:
+    """Catches the rich world drawing from the classic stream (every classic dataset would change)."""
+    for s in range(10):
+        a = P.scene_digest(P._draw(s, None, 32, 32, (10, 20)).scene)
+        b = P.scene_digest(P._draw(s, None, 32, 32, (10, 20), "classic").scene)
+        assert a == b
+
+
+def test_rich_draws_are_reproducible() -> None:
+    """Catches an unseeded draw in the rich features (a recipe would not give the same dataset)."""
+    for s in range(5):
+        assert P.scene_digest(P._draw(s, None, 32, 32, (10, 20), "rich").scene) == \
+            P.scene_digest(P._draw(s, None, 32, 32, (10, 20), "rich").scene)
+
+
+def test_rich_world_has_windows_small_bright_emitters_and_nights() -> None:
+    """Catches a feature that is never drawn, or drawn wrong: window rooms keep no lamp panels (one
+    mesh emitter at most, for reproducible emitter order), small emitters are small and 1e2-1e5 bright."""
+    draws = _draws("rich")
+    windows = [d for d in draws if d.info["rich"]["window"]]
+    bulbs = [d for d in draws if d.info["rich"]["small_emitters"] > 0]
+    nights = [d for d in draws if d.info["rich"]["night"]]
+    assert windows and bulbs and nights
+    for d in windows:
+        rect_emitters = [k for k, v in d.scene.items() if isinstance(v, dict) and v.get("type") in ("rectangle", "cube", "disk")
+                         and "emitter" in v]
+        assert rect_emitters == ["window"], rect_emitters
+        whole_walls = [k for k in d.scene if k in ("wall_0", "wall_1", "wall_2", "wall_3")]
+        assert d.kind == "indoor" and len(whole_walls) == 3  # one wall was cut around the opening
+    for d in bulbs:
+        for k, v in d.scene.items():
+            if k.startswith("bulb_"):
+                assert v["radius"] <= 0.12 and 1e2 * 0.05 <= max(v["emitter"]["radiance"]["value"]) <= 1e5
+    for d in nights:
+        assert d.kind == "outdoor"
+
+
+def test_unknown_world_is_refused() -> None:
+    """Catches a typo silently drawing the classic world."""
+    with pytest.raises(SceneError, match="world"):
+        P._draw(0, None, 32, 32, (10, 20), "richer")
+    assert EXPOSURE_RANGE["rich"][1] / EXPOSURE_RANGE["rich"][0] >= 100  # orders of magnitude between scenes
