@@ -234,3 +234,51 @@ def test_max_memory_below_the_minimum_tile_is_refused(tmp_path, wskp, capfd):
     assert rc == 0, cap.err
     tiles = re.search(r"ran (\d+) tiles of (\d+) px", cap.out)
     assert tiles is None or int(tiles.group(2)) >= 32, cap.out
+
+
+def _tmpfs(mnt, options: str):
+    """A small tmpfs mounted at ``mnt`` (skips where mounting is not allowed); unmount with the returned call."""
+    import subprocess
+
+    mnt.mkdir()
+    if subprocess.run(["mount", "-t", "tmpfs", "-o", options, "tmpfs", str(mnt)], capture_output=True).returncode:
+        pytest.skip(f"cannot mount a tmpfs ({options}) here (not root?)")
+    return lambda: subprocess.run(["umount", str(mnt)], check=False)
+
+
+@pytest.mark.parametrize("options,needle", [("size=1m,ro", "read-only"), ("size=64k", "disk is full")])
+def test_unwritable_output_is_one_line(tmp_path, wskp, capfd, options, needle):
+    """Catches issue 22 item 9: an output on a read-only or full file system ended in OpenEXR's
+    RuntimeError traceback; it must be one line naming the file and the reason, leaving nothing."""
+    src = tmp_path / "r.exr"
+    _blender_exr(src, size=(96, 96))
+    umount = _tmpfs(tmp_path / "mnt", options)
+    try:
+        _refused(capfd, ["denoise", str(src), "-o", str(tmp_path / "mnt" / "o.exr"), "--model", wskp], "o.exr", needle)
+        assert list((tmp_path / "mnt").iterdir()) == []
+    finally:
+        umount()
+
+
+def test_preview_failure_leaves_no_exr_and_stale_temps_go(tmp_path, wskp, capfd):
+    """Catches issue 22 items 9 and 10: a preview that could not be written left the EXR behind with
+    rc 1; a dead writer's `.o.tmp-*` temporary beside the output was never removed; `--device mps`
+    gave a traceback."""
+    import subprocess
+
+    from mcdenoise.io import safety
+
+    src, out = tmp_path / "r.exr", tmp_path / "o.exr"
+    _blender_exr(src)
+    (tmp_path / "plain").write_text("a file, not a folder")
+    _refused(capfd, ["denoise", str(src), "-o", str(out), "--model", wskp, "--preview",
+                     str(tmp_path / "plain" / "p.png")], "plain")
+    assert not out.exists() and [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []
+    dead = subprocess.Popen(["true"])
+    dead.wait()
+    stale = tmp_path / f".o.tmp-{safety._HOST}-{dead.pid}-0123abcd.exr"
+    stale.write_bytes(b"half an EXR")
+    assert main(["denoise", str(src), "-o", str(out), "--model", wskp, "--preview", str(tmp_path / "p.png")]) == 0
+    assert out.is_file() and (tmp_path / "p.png").is_file() and not stale.exists()
+    _refused(capfd, ["denoise", str(src), "-o", str(tmp_path / "m.exr"), "--model", wskp, "--device", "mps"],
+             "--device mps", "cpu or cuda")

@@ -15,6 +15,7 @@ and which channels it read. The output holds the denoised radiance as top-level 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import sys
 import warnings
@@ -139,6 +140,8 @@ def _denoise(args: argparse.Namespace, src: Path, tile: int | str, budget: int) 
     from mcdenoise.infer.run import default_device, denoise_inputs, describe_plan
     from mcdenoise.infer.sources import from_exr, from_folder
     from mcdenoise.io.exr import tonemap, write_exr_raw, write_png
+    from mcdenoise.errors import OutputError
+    from mcdenoise.io.safety import atomic_file, os_error, remove_stale_temps
 
     if args.device is not None and args.device.startswith("cuda") and not torch.cuda.is_available():
         raise McDenoiseError("--device cuda: no CUDA device is available (use --device cpu)")
@@ -146,6 +149,8 @@ def _denoise(args: argparse.Namespace, src: Path, tile: int | str, budget: int) 
         device = torch.device(args.device) if args.device else default_device()
     except RuntimeError as e:
         raise McDenoiseError(f"--device: {e}") from None
+    if device.type not in ("cpu", "cuda"):
+        raise McDenoiseError(f"--device {args.device}: not supported; use cpu or cuda")
     if src.is_dir():
         inputs = from_folder(src)
     else:
@@ -159,15 +164,27 @@ def _denoise(args: argparse.Namespace, src: Path, tile: int | str, budget: int) 
     print(f"ran {describe_plan(run.plan)} on {run.device}")
     attrs = {"mcdenoise_model": str(info["name"]), "mcdenoise_weights": str(info["weights"]),
              "mcdenoise_input": str(src)}
+    targets = [args.output] + ([args.preview] if args.preview is not None else [])
+    for path in targets:
+        remove_stale_temps(path)  # temporaries of a killed earlier run
     try:
-        write_exr_raw(args.output, {"R": out[0], "G": out[1], "B": out[2]}, attributes=attrs)
-        print(f"wrote {args.output}")
-        if args.preview is not None:
-            import numpy as np
+        # Both files are written under temporary names and renamed only when both are written:
+        # a preview that cannot be written leaves no EXR behind (nor the other way round).
+        with contextlib.ExitStack() as stack:
+            tmps = [stack.enter_context(atomic_file(path)) for path in targets]
+            try:
+                write_exr_raw(tmps[0], {"R": out[0], "G": out[1], "B": out[2]}, attributes=attrs)
+            except OutputError as e:  # named by its temporary name: name the output
+                raise OutputError(args.output, e.problem) from None
+            if args.preview is not None:
+                import numpy as np
 
-            rgb8 = np.round(tonemap(out) * 255.0).astype(np.uint8).transpose(1, 2, 0)
-            write_png(args.preview, rgb8)
-            print(f"wrote {args.preview}")
+                try:
+                    write_png(tmps[1], np.round(tonemap(out) * 255.0).astype(np.uint8).transpose(1, 2, 0))
+                except OSError as e:
+                    raise os_error(args.preview, e, "writing the preview") from None
     except OSError as e:
         raise McDenoiseError(f"{e.filename or args.output}: cannot write ({e.strerror or e})") from None
+    for path in targets:
+        print(f"wrote {path}")
     return 0

@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from mcdenoise.data.channels import CHANNELS, base_name, get_channel
-from mcdenoise.errors import FormatError
+from mcdenoise.errors import FormatError, OutputError
 from mcdenoise.io.atomic import atomic_file
 from mcdenoise.io.names import component_suffixes, group_channels, to_exr_channel_names
 
@@ -187,8 +187,22 @@ def write_exr_raw(
     header.update(attributes or {})
     final = Path(path)
     with atomic_file(final) as tmp:
-        OpenEXR.File(header, data).write(str(tmp))
+        try:
+            OpenEXR.File(header, data).write(str(tmp))
+        except RuntimeError as e:  # OpenEXR reports OS errors (read-only, disk full) as RuntimeError
+            raise _write_error(final, e) from None
     return final
+
+
+def _write_error(path: Path, exc: BaseException) -> OutputError:
+    """One line for a failed OpenEXR write, with the OS reason when its message gives one."""
+    text = " ".join(str(exc).split())
+    low = text.lower()
+    for needle, hint in (("no space", "the disk is full"), ("read-only", "the file system is read-only"),
+                         ("permission denied", "permission denied"), ("quota", "the disk quota is exceeded")):
+        if needle in low:
+            return OutputError(path, f"writing failed: {hint}")
+    return OutputError(path, f"writing failed: {text[:200] or type(exc).__name__}")
 
 
 def write_exr(
