@@ -57,3 +57,18 @@ def test_resume_with_more_steps_extends_a_finished_run(tiny: Path, tmp_path: Pat
     assert [int(r["step"]) for r in read_metrics(out / "metrics.csv")] == [1, 2, 3, 4]
     assert json.loads((out / "config.json").read_text())["train"]["steps"] == 4
     assert main([*base, "--steps", "3", "--resume"]) == 1
+
+
+def test_validation_prints_the_noisy_baseline_and_reads_val_data(tiny: Path, tmp_path: Path,
+                                                                  capsys: pytest.CaptureFixture) -> None:
+    """Catches a validation figure printed with nothing to compare it to (issue 18: 'relmse 14.96'
+    alone), --val-data being ignored, and a resume that does not say where it resumed."""
+    out = tmp_path / "v"
+    base = ["train", *RUN, "--val-every", "2", "--data", str(tiny), "--out", str(out), "--val-data", str(tiny)]
+    assert main([*base, "--steps", "2"]) == 0
+    err = capsys.readouterr().err
+    assert f"of {tiny}; the noisy input scores relmse" in err
+    assert main([*base, "--steps", "4", "--resume"]) == 0
+    assert "resuming at step 2 of 4" in capsys.readouterr().err
+    assert main(["train", *RUN, "--data", str(tiny), "--out", str(tmp_path / "w"), "--steps", "1",
+                 "--val-data", str(tmp_path / "nowhere")]) == 1

@@ -1,6 +1,6 @@
 """Evaluate denoisers against the noisy input, OIDN 2.5.1 and NL-means; write an HTML report.
 
-    mcdenoise eval --models A B ... --data DIR [DIR ...] --out REPORT_DIR [--split test]
+    mcdenoise eval --models A B ... (--data DIR [DIR ...] | --scenes DIR [--refs DIR]) --out REPORT_DIR [--split test]
                    [--spp 4 8 16] [--oidn high fast] [--no-oidn] [--no-classic] [--max-images N]
                    [--device auto|cpu|cuda] [--threads N]
                    [--results-md docs/RESULTS.md --section NAME]
@@ -9,6 +9,10 @@
 A model is a registered name (its shipped weights), a run folder of `mcdenoise train`, or a
 .safetensors file. DIR is a dataset folder (its --split images), an image folder from
 `mcdenoise render`, or a folder of such image folders; only images with a reference count.
+--scenes DIR is a folder of Mitsuba 3 scenes (NAME/scene.xml) with references in --refs
+(NAME_<W>_spp<N>_d<D>.npy, default DIR/refs), as ../shared/valscenes: the inputs are rendered
+once (at the largest --spp, --render-seed, the reference's size and max depth) into --work and
+reused; the scenes folder is only read.
 REPORT_DIR gets results.json, results.csv and index.html (see docs/EVAL.md).
 """
 
@@ -26,7 +30,13 @@ def add_parser(p: argparse.ArgumentParser) -> None:
     p.epilog = __doc__.split("\n\n", 1)[1]
     p.add_argument("--models", nargs="*", default=[], metavar="MODEL",
                    help="registered names (shipped weights), run folders or .safetensors files")
-    p.add_argument("--data", nargs="+", required=True, metavar="DIR", help="dataset or image folders")
+    p.add_argument("--data", nargs="+", default=[], metavar="DIR", help="dataset or image folders")
+    p.add_argument("--scenes", type=Path, help="folder of scene files with references (see below)")
+    p.add_argument("--refs", type=Path, help="references of --scenes (default SCENES/refs)")
+    p.add_argument("--scene-names", nargs="+", metavar="NAME", help="only these scenes of --scenes")
+    p.add_argument("--render-seed", type=int, default=7, help="sampler seed of the --scenes inputs (default 7)")
+    p.add_argument("--work", type=Path, default=Path("data/scene_inputs"),
+                   help="where the --scenes inputs are rendered and kept (default data/scene_inputs)")
     p.add_argument("--out", type=Path, required=True, help="report folder (an earlier report there is replaced)")
     p.add_argument("--split", default="test", help="dataset split to evaluate (default test)")
     p.add_argument("--spp", type=int, nargs="*", default=[4, 8, 16], metavar="K",
@@ -48,13 +58,24 @@ def add_parser(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from mcdenoise.eval.runner import evaluate
+    from mcdenoise.eval.runner import EvalError, evaluate
 
+    data = list(args.data)
+    if args.scenes is not None:
+        from mcdenoise.eval.scenes import find_scene_cases, prepare_scene_inputs
+
+        if not args.spp:
+            raise EvalError("--scenes needs --spp")
+        cases = find_scene_cases(args.scenes, args.refs, names=args.scene_names)
+        data += [str(p) for p in prepare_scene_inputs(cases, args.work, spp=max(args.spp), seed=args.render_seed,
+                                                      progress=not args.no_progress)]
+    if not data:
+        raise EvalError("nothing to evaluate: give --data DIR ... or --scenes DIR")
     argv = sys.argv[1:] if Path(sys.argv[0]).name == "mcdenoise" and sys.argv[1:2] == ["eval"] else None
     command = "mcdenoise " + shlex.join(argv) if argv else _command_from(args)
     doc = evaluate(
         models=args.models,
-        data=args.data,
+        data=data,
         out=args.out,
         split=args.split,
         spp=args.spp,
@@ -82,7 +103,12 @@ def _command_from(args: argparse.Namespace) -> str:
     parts = ["eval"]
     if args.models:
         parts += ["--models", *args.models]
-    parts += ["--data", *args.data, "--split", args.split, "--spp", *map(str, args.spp), "--out", str(args.out)]
+    if args.data:
+        parts += ["--data", *args.data]
+    if args.scenes is not None:
+        parts += ["--scenes", str(args.scenes)] + (["--refs", str(args.refs)] if args.refs else [])
+        parts += (["--scene-names", *args.scene_names] if args.scene_names else []) + ["--render-seed", str(args.render_seed)]
+    parts += ["--split", args.split, "--spp", *map(str, args.spp), "--out", str(args.out)]
     if args.no_oidn:
         parts.append("--no-oidn")
     elif args.oidn != ["high", "fast"]:

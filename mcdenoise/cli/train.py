@@ -18,7 +18,7 @@ import sys
 from pathlib import Path
 
 #: CLI flag (dest) -> TrainConfig field, for the flags that map one to one.
-_FIELDS = ("model", "preset", "init", "data", "steps", "batch", "crop", "lr", "loss", "device", "seed", "val_every",
+_FIELDS = ("model", "preset", "init", "data", "val_data", "steps", "batch", "crop", "lr", "loss", "device", "seed", "val_every",
            "checkpoint_every", "keep_every", "workers", "threads", "target", "sampling", "warmup", "schedule", "clip_grad",
            "branch_fraction", "amp", "val_images")
 
@@ -31,6 +31,7 @@ def add_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--preset", help="model preset (default small)")
     p.add_argument("--init", help="start from these weights (fine-tune): a shipped model name, run folder or .safetensors")
     p.add_argument("--data", help="dataset folder from `mcdenoise dataset`")
+    p.add_argument("--val-data", help="validate on this dataset's val split (e.g. one with references; default --data)")
     p.add_argument("--out", type=Path, required=True, help="run folder (created; see --resume and --force)")
     p.add_argument("--steps", type=int, help="optimizer steps (default 2000); with --resume, more steps extend a finished run")
     p.add_argument("--batch", type=int, help="global batch, crops per step over all processes (default 8)")

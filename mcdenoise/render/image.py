@@ -46,8 +46,13 @@ def render_image(
     extra_noisy: dict[str, np.ndarray] | None = None,
     nonfinite: str = "sanitize",
     max_bytes: int | None = DEFAULT_MAX_BYTES,
+    reference: tuple[dict[str, np.ndarray], int] | None = None,
 ) -> Path:
     """Render one image folder (per-sample data, noisy.exr, reference.exr, meta.json), atomically.
+
+    ``reference`` = (layers ``name -> (C, H, W)``, its spp) stores a reference made elsewhere
+    (e.g. the validation scenes' 8192-spp references) instead of rendering one; then
+    ``settings.ref_spp`` must be 0.
 
     The per-sample data is streamed to disk band by band, so memory stays bounded at any size.
     ``record_position`` adds a per-pixel ``position`` buffer (mean over samples) to noisy.exr;
@@ -67,14 +72,16 @@ def render_image(
     try:
         return _render_locked(scene, out, settings, scene_name=scene_name, extra_meta=extra_meta,
                               camera_to_world=camera_to_world, record_position=record_position, overwrite=overwrite,
-                              progress=progress, extra_noisy=extra_noisy, nonfinite=nonfinite, max_bytes=max_bytes)
+                              progress=progress, extra_noisy=extra_noisy, nonfinite=nonfinite, max_bytes=max_bytes,
+                              given_reference=reference)
     finally:
         lock.release()
 
 
 def _render_locked(scene: Any, out: Path, settings: RenderSettings, *, scene_name: str, extra_meta: dict | None,
                    camera_to_world: np.ndarray | None, record_position: bool, overwrite: bool, progress: bool,
-                   extra_noisy: dict[str, np.ndarray] | None, nonfinite: str, max_bytes: int | None) -> Path:
+                   extra_noisy: dict[str, np.ndarray] | None, nonfinite: str, max_bytes: int | None,
+                   given_reference: tuple[dict[str, np.ndarray], int] | None = None) -> Path:
     import drjit as dr
 
     from mcdenoise.data import format as fmt
@@ -105,7 +112,7 @@ def _render_locked(scene: Any, out: Path, settings: RenderSettings, *, scene_nam
         seed=settings.seed,
         renderer=_renderer_string(),
         scene_features=feats,
-        reference_spp=settings.ref_spp if settings.ref_spp > 0 else None,
+        reference_spp=settings.ref_spp if settings.ref_spp > 0 else (given_reference[1] if given_reference else None),
         extra=extra,
     )
     writer = fmt.SampleWriter(out, meta, overwrite=overwrite, nonfinite=nonfinite, max_bytes=max_bytes)
@@ -127,7 +134,14 @@ def _render_locked(scene: Any, out: Path, settings: RenderSettings, *, scene_nam
         dr.flush_malloc_cache()
         t1 = _time.perf_counter()
         reference = None
-        if settings.ref_spp > 0:
+        if given_reference is not None:
+            if settings.ref_spp > 0:
+                raise ValueError("render_image: a given reference needs settings.ref_spp == 0")
+            reference = {k: np.asarray(v, np.float32) for k, v in given_reference[0].items()}
+            for k, v in reference.items():
+                if v.shape[-2:] != (settings.height, settings.width):
+                    raise ValueError(f"render_image: given reference {k!r} is {v.shape}, the image {settings.height}x{settings.width}")
+        elif settings.ref_spp > 0:
             reference = render_reference(scene, settings, camera_to_world=camera_to_world, progress=bar.update)
         t2 = _time.perf_counter()
         meta.extra["render_seconds"] = {"samples": round(t1 - t0, 3), "reference": round(t2 - t1, 3)}

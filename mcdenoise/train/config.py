@@ -92,6 +92,9 @@ class TrainConfig:
     ``.safetensors`` file of the same model; its model configuration replaces the preset's."""
     data: str = ""
     """Dataset folder written by ``mcdenoise dataset`` (needs a ``train`` split; ``val`` for validation)."""
+    val_data: str | None = None
+    """Validate on this dataset's ``val`` split instead (e.g. a small one with references: noisy
+    targets make validation relMSE biased); None = ``data``'s."""
     steps: int = 2000
     """Number of optimizer steps (one global batch each)."""
     batch: int = 8
@@ -205,7 +208,7 @@ class TrainConfig:
 
 
 #: Settings that do not change what is computed: a resume may change them freely.
-RUNTIME_FIELDS = frozenset({"data", "device", "workers", "threads", "val_every", "val_images", "checkpoint_every", "keep_every", "progress"})
+RUNTIME_FIELDS = frozenset({"data", "val_data", "device", "workers", "threads", "val_every", "val_images", "checkpoint_every", "keep_every", "progress"})
 
 
 def manifest_hash(data_dir: str | Path) -> str:

@@ -262,5 +262,8 @@ def validation_batches(
                 raise ValueError(f"{im.path}: no reference and no held-out samples for a validation target")
             ref = {k: v.mean(axis=0) for k, v in im.samples.read(targets, samples=held).items()}
         crop = Crop(inputs, ref, m.scene_feature_vector(), im.path, (0, 0), idx)
-        out.append(_stack([crop], [hi], model.input_kind, targets))
+        batch = _stack([crop], [hi], model.input_kind, targets)
+        # The noisy input's own image, so that validation can print the baseline beside the model.
+        batch["noisy"] = torch.from_numpy(im.samples.read(["radiance"], samples=idx)["radiance"].mean(axis=0))[None].float()
+        out.append(batch)
     return out

@@ -230,7 +230,8 @@ def _train(cfg: TrainConfig, out: Path, resume: bool, force: bool, on_step: Call
     try:
         batch_source(data_dir, model, data_config(cfg), rank=rank, world_size=world)
         if rank == 0:
-            val_batches = validation_batches(data_dir, model, data_config(cfg), max_images=cfg.val_images)
+            val_batches = validation_batches(Path(cfg.val_data) if cfg.val_data else data_dir, model, data_config(cfg),
+                                             max_images=cfg.val_images)
     except ValueError as e:
         err = ConfigError(str(e))
     if distributed:  # every rank stops if any rank cannot read its data
@@ -259,6 +260,13 @@ def _train(cfg: TrainConfig, out: Path, resume: bool, force: bool, on_step: Call
 
     model.to(device)
     trainer = Trainer(model, cfg, device, distributed)
+    if rank == 0 and 0 < start < cfg.steps:
+        print(f"{out}: resuming at step {start} of {cfg.steps}", file=sys.stderr)
+    if rank == 0 and val_batches and start < cfg.steps:
+        base = Trainer.noisy_baseline(val_batches)
+        shown = ", ".join(f"{k} {v:.4g}" for k, v in base.items())
+        print(f"{out}: validation on {len(val_batches)} image(s) of {cfg.val_data or cfg.data}; "
+              f"the noisy input scores {shown}", file=sys.stderr)
     skipped = 0
     wall_before = 0.0  # wall time of earlier calls, up to the checkpoint resumed from
     if start > 0:

@@ -126,6 +126,7 @@ class Trainer:
         if not batches:
             return {}
         self.model.eval()
+        batches = [{k: v for k, v in b.items() if k != "noisy"} for b in batches]
         sums = {m: 0.0 for m in VAL_METRICS}
         for b in batches:
             b = {k: v.to(self.device) for k, v in b.items()}
@@ -134,6 +135,18 @@ class Trainer:
                 sums[k] += v
         self.model.train()
         return {k: v / len(batches) for k, v in sums.items()}
+
+    @staticmethod
+    def noisy_baseline(batches: list[dict[str, torch.Tensor]]) -> dict[str, float]:
+        """:meth:`validate`'s metrics for the noisy input itself (the figure a model must beat)."""
+        from mcdenoise.eval.metrics import compute_metrics
+
+        sums = {m: 0.0 for m in VAL_METRICS}
+        with_noisy = [b for b in batches if "noisy" in b]
+        for b in with_noisy:
+            for k, v in compute_metrics(b["noisy"].float(), b["target"].float(), list(VAL_METRICS)).items():
+                sums[k] += v
+        return {k: v / len(with_noisy) for k, v in sums.items()} if with_noisy else {}
 
     def state(self, step: int, skipped: int, wall_s: float = 0.0) -> dict[str, Any]:
         """Everything besides the weights that a resume needs (tensors, numbers and strings only).
