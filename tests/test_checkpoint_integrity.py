@@ -103,8 +103,10 @@ def test_every_checkpoint_damaged_is_one_line(runs, tmp_path, capfd) -> None:
         _truncate(ck.path / "state.pt")
     capfd.readouterr()
     assert main(["train", *RUN, "--data", str(data), "--out", str(run), "--steps", "8", "--resume"]) == 1
-    err = [ln for ln in capfd.readouterr().err.splitlines() if ln.strip()]
-    assert len(err) == 1 and "every checkpoint is damaged" in err[0] and "--force" in err[0], err
+    text = capfd.readouterr().err
+    err = [ln for ln in text.splitlines() if "error" in ln]
+    assert len(err) == 1 and "Traceback" not in text, text
+    assert "every checkpoint is damaged" in err[0] and "--force" in err[0], err
 
 
 def test_checkpoint_byte_flip_sweep(tmp_path) -> None:
@@ -153,11 +155,67 @@ def test_one_writer_per_run_folder(runs, tmp_path, capfd) -> None:
         for extra in (["--resume"], ["--force"]):
             capfd.readouterr()
             assert main(["train", *RUN, "--data", str(data), "--out", str(run), "--steps", "8", *extra]) == 1
-            err = [ln for ln in capfd.readouterr().err.splitlines() if ln.strip()]
-            assert len(err) == 1 and "another mcdenoise run is writing here" in err[0], err
+            text = capfd.readouterr().err
+            err = [ln for ln in text.splitlines() if "error" in ln]
+            assert len(err) == 1 and "another mcdenoise run is writing here" in err[0], text
             assert sorted(p.name for p in run.rglob("*")) == before
     dead = subprocess.Popen(["true"])
     dead.wait()
     lock.write_text(__import__("json").dumps({"pid": dead.pid, "host": safety._HOST, "what": "killed"}))
     assert main(["train", *RUN, "--data", str(data), "--out", str(run), "--steps", "8", "--resume"]) == 0
     assert not lock.exists() and os.path.isfile(run / "model.safetensors")
+
+
+@pytest.mark.parametrize("fail", ["torch_save", "safetensors"])
+def test_disk_full_during_a_checkpoint_is_one_line(runs, tmp_path, capfd, monkeypatch, fail) -> None:
+    """Catches issue 22 item 9's checkpoint case: a full disk while writing a checkpoint ended in a
+    traceback (torch.save's RuntimeError); it must be one line naming the checkpoint, leave no
+    temporary folder, and the run must resume from the previous checkpoint."""
+    import errno
+
+    import mcdenoise.train.checkpoint as ckmod
+
+    data, ref = runs
+    run = tmp_path / "run"
+    real_save, real_file = ckmod.torch.save, ckmod.save_file
+    calls = {"n": 0}
+
+    def full_disk(*a, **k):
+        calls["n"] += 1
+        if calls["n"] >= 3:  # the third checkpoint (step 6) finds the disk full
+            if fail == "torch_save":
+                raise RuntimeError("[enforce fail at inline_container.cc:778] . PytorchStreamWriter failed "
+                                   "writing file data/3: file write failed")
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return (real_save if fail == "torch_save" else real_file)(*a, **k)
+
+    if fail == "torch_save":
+        monkeypatch.setattr(ckmod.torch, "save", full_disk)
+    else:
+        monkeypatch.setattr(ckmod, "save_file", full_disk)
+    capfd.readouterr()
+    assert main(["train", *RUN, "--data", str(data), "--out", str(run), "--steps", "8"]) == 1
+    text = capfd.readouterr().err
+    err = [ln for ln in text.splitlines() if "error" in ln]
+    assert len(err) == 1 and "Traceback" not in text, text
+    assert "step_00000006" in err[0] and ("disk is full" in err[0] or "disk full" in err[0]), err
+    assert sorted(p.name for p in (run / "checkpoints").iterdir()) == ["step_00000002", "step_00000004"]
+    monkeypatch.undo()
+    assert main(["train", *RUN, "--data", str(data), "--out", str(run), "--steps", "8", "--resume"]) == 0
+    assert _losses(run) == _losses(ref)
+
+
+def test_killed_plot_temporary_is_removed(runs, tmp_path) -> None:
+    """Catches issue 22 item 10: a `.loss.tmp-*.png` of a killed run survived every later resume."""
+    import subprocess
+
+    from mcdenoise.io import safety
+
+    data, ref = runs
+    run = _killed_after_6(ref, tmp_path / "run")
+    dead = subprocess.Popen(["true"])
+    dead.wait()
+    stale = run / f".loss.tmp-{safety._HOST}-{dead.pid}-0123abcd.png"
+    stale.write_bytes(b"half a PNG")
+    assert main(["train", *RUN, "--data", str(data), "--out", str(run), "--steps", "8", "--resume"]) == 0
+    assert not stale.exists()

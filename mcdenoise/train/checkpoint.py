@@ -26,11 +26,14 @@ from pathlib import Path
 from typing import Any
 
 import torch
+from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 
+from mcdenoise.errors import OutputError
 from mcdenoise.io.atomic import atomic_dir
 from mcdenoise.io.run_folder import CHECKPOINT_DIR, CHECKPOINT_FILES, CHECKSUM_FILE, Checkpoint, CheckpointError, \
     checkpoint_folder_name, intact_checkpoint, latest_checkpoint, list_checkpoints, sha256_file, verify_checkpoint
+from mcdenoise.io.safety import os_error
 
 __all__ = ["CHECKPOINT_DIR", "CHECKSUM_FILE", "Checkpoint", "CheckpointError", "save_checkpoint", "latest_checkpoint",
            "load_checkpoint", "verify_checkpoint", "resume_checkpoint", "intact_checkpoint", "prune_checkpoints",
@@ -46,11 +49,21 @@ def save_checkpoint(run_dir: Path, step: int, model: torch.nn.Module, state: dic
     """Write ``checkpoints/step_<step>/`` atomically; ``state`` must hold tensors/numbers/strings only."""
     final = Path(run_dir) / CHECKPOINT_DIR / checkpoint_folder_name(step)
     # A rerun after a kill between this step's write and the next may find it already there.
-    with atomic_dir(final, overwrite=True) as tmp:
-        save_file(state_dict_for_safetensors(model), str(tmp / "model.safetensors"), metadata={"step": str(step)})
-        torch.save(dict(state, step=step), tmp / "state.pt")
-        sums = {name: {"bytes": (tmp / name).stat().st_size, "sha256": sha256_file(tmp / name)} for name in CHECKPOINT_FILES}
-        (tmp / CHECKSUM_FILE).write_text(json.dumps(sums, indent=1) + "\n")
+    try:
+        with atomic_dir(final, overwrite=True) as tmp:
+            save_file(state_dict_for_safetensors(model), str(tmp / "model.safetensors"), metadata={"step": str(step)})
+            torch.save(dict(state, step=step), tmp / "state.pt")
+            sums = {name: {"bytes": (tmp / name).stat().st_size, "sha256": sha256_file(tmp / name)}
+                    for name in CHECKPOINT_FILES}
+            (tmp / CHECKSUM_FILE).write_text(json.dumps(sums, indent=1) + "\n")
+    except OutputError:
+        raise
+    except OSError as e:
+        raise os_error(final, e, "writing the checkpoint") from None
+    except (RuntimeError, SafetensorError) as e:  # torch.save/safetensors report a full disk this way
+        text = " ".join(str(e).split())[:200]
+        raise OutputError(final, f"writing the checkpoint failed (is the disk full? {text}); the run can be "
+                                 "resumed from the previous checkpoint with --resume") from None
     return Checkpoint(final, step)
 
 
@@ -60,8 +73,6 @@ def load_checkpoint(ck: Checkpoint, model: torch.nn.Module, device: torch.device
     Raises :class:`CheckpointError` (one line naming the file) for a damaged checkpoint: checksum
     mismatch, unreadable file, non-finite weights, a state that is not a training state.
     """
-    from safetensors import SafetensorError
-
     verify_checkpoint(ck)
     weights, state_path = ck.path / "model.safetensors", ck.path / "state.pt"
     try:

@@ -174,7 +174,9 @@ def plot_loss(metrics_path: Path, out_png: Path) -> Path | None:
     Returns None when there is nothing to plot yet.
     """
     from mcdenoise.io.exr import write_png
+    from mcdenoise.io.safety import remove_stale_temps
 
+    remove_stale_temps(out_png)  # a killed run's half-drawn .loss.tmp-*.png
     rows = read_metrics(metrics_path)
     drawn = _plot_matplotlib(rows, out_png)
     if drawn is not None:
