@@ -165,3 +165,16 @@ def test_from_json_rerenders_docs_block(tmp_path, capsys) -> None:
     assert "prose before" in text and "prose after" in text and "OLDBLOCK" not in text
     assert "| wskp:paper | - | <= 0.25x | 0.2 |" in text and "Command: `mcdenoise bench`" in text
     assert "### 1920x1080" in capsys.readouterr().out
+
+
+def test_unmeasured_target_is_not_reported_as_failed() -> None:
+    """Bug caught (issue 18): `bench --quick` times 256x256 only, and its targets at 1920x1080
+    were printed ``not measured | **no**``, i.e. as failures; a target never timed is neither met
+    nor missed."""
+    res = _fake_result()
+    res["config"]["methods"].append("kpcn:small")  # asked for, never timed at 1920x1080
+    rows = {r["method"]: r for r in target_rows(res)}
+    assert rows["kpcn:small"]["met"] is None and rows["kpcn:small"]["ratio"] is None
+    assert rows["sbmc:small"]["met"] is False
+    line = next(ln for ln in markdown(res).splitlines() if ln.startswith("| kpcn:small | - | <= 1x"))
+    assert line.endswith("| not measured | - | not measured |") and "**no**" not in line, line

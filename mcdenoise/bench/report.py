@@ -36,7 +36,8 @@ def ratios(res: dict[str, Any], entry: dict[str, Any]) -> dict[str, float | None
 
 
 def target_rows(res: dict[str, Any], size: tuple[int, int] = (1920, 1080)) -> list[dict[str, Any]]:
-    """Issue 12's CPU targets against this run: method, spp, limit, ratio (None: not measured), met."""
+    """Issue 12's CPU targets against this run: method, spp, limit, ratio and met (both None when
+    not measured: a target this run did not time is neither met nor missed)."""
     rows = []
     for label, spp, limit in TARGETS:
         hit = [e for e in _ok(res) if e["method"] == label and e["spp"] == spp and (e["width"], e["height"]) == size]
@@ -44,12 +45,16 @@ def target_rows(res: dict[str, Any], size: tuple[int, int] = (1920, 1080)) -> li
             continue
         r = ratios(res, hit[0])["high"] if hit else None
         rows.append({"method": label, "spp": spp, "limit": limit, "ratio": r,
-                     "median_s": hit[0]["median_s"] if hit else None, "met": r is not None and r <= limit})
+                     "median_s": hit[0]["median_s"] if hit else None, "met": None if r is None else r <= limit})
     return rows
 
 
 def _fmt(x: float | None, spec: str, none: str = "-") -> str:
     return none if x is None else format(x, spec)
+
+
+def _met(met: bool | None) -> str:
+    return "not measured" if met is None else "yes" if met else "**no**"
 
 
 def _ms(s: float) -> str:
@@ -105,7 +110,7 @@ def markdown(res: dict[str, Any], command: str = "") -> str:
                   "| method | spp | limit | measured | median ms | met |", "|---|---:|---:|---:|---:|---|"]
         for t in tr:
             lines.append(f"| {t['method']} | {t['spp'] or '-'} | <= {t['limit']:g}x | {_fmt(t['ratio'], '.3g', 'not measured')} | "
-                         f"{_ms(t['median_s']) if t['median_s'] else '-'} | {'yes' if t['met'] else '**no**'} |")
+                         f"{_ms(t['median_s']) if t['median_s'] else '-'} | {_met(t['met'])} |")
         lines.append("")
     other = [e for e in res["entries"] if e["status"] != "ok"]
     if other:
