@@ -148,3 +148,34 @@ def test_header_length_flip_is_one_line_not_memory_error(img, byte, capfd) -> No
     err = [ln for ln in capfd.readouterr().err.splitlines() if ln.strip()]
     assert len(err) == 1 and "samples.bin" in err[0], err
     shutil.rmtree(other)
+
+
+@pytest.mark.parametrize("edit", ["bad split", "duplicate path"])
+def test_verify_checks_the_manifest(tmp_path, capfd, edit) -> None:
+    """Catches issue 22 item 10: a manifest.json with a bad split or a path listed twice passed
+    `dataset --verify`."""
+    from train_tiny_data import make_tiny_dataset
+
+    root = make_tiny_dataset(tmp_path / "data", train=2, val=1, spp=2, size=16)
+    doc = json.loads((root / "manifest.json").read_text())
+    if edit == "bad split":
+        doc["images"][0]["split"] = "trian"
+    else:
+        doc["images"].append(dict(doc["images"][0]))
+    (root / "manifest.json").write_text(json.dumps(doc))
+    capfd.readouterr()
+    assert main(["dataset", "--verify", str(root)]) == 1
+    out = capfd.readouterr().out
+    assert "manifest.json" in out and ("trian" in out or "listed twice" in out), out
+
+
+def test_nonfinite_hint_names_what_a_cli_user_can_do(tmp_path) -> None:
+    """Catches issue 22 item 10: the NaN-data hint said "pass sanitize=True", which no command takes."""
+    rng = np.random.default_rng(0)
+    s = {"radiance": rng.random((2, 3, 8, 8)).astype(np.float32)}
+    s["radiance"][0, 0, 1, 1] = np.nan
+    folder = write_image(tmp_path / "nan", meta=ImageMeta(width=8, height=8, spp=2, channels=["radiance"]), samples=s)
+    from mcdenoise.data.format import read_image
+
+    with pytest.raises(FormatError, match="--nonfinite sanitize"):
+        read_image(folder).read_noisy(["radiance"])

@@ -46,7 +46,8 @@ def check_finite(
     msg = (f"channel {name!r}: {n} non-finite value(s) ({n_nan} NaN, {n - n_nan} Inf), "
            f"first at {', '.join(parts)}")
     if not sanitize:
-        raise FormatError(path, msg + "; pass sanitize=True to replace them by 0")
+        raise FormatError(path, msg + "; render the image again (`mcdenoise render`/`dataset` replace them by 0 "
+                                      "with --nonfinite sanitize, the default), or read it with sanitize=True in Python")
     warnings.warn(f"{os.fspath(path)}: {msg}; replaced by 0", stacklevel=3)
     out = arr.copy()
     out[bad] = 0

@@ -12,7 +12,7 @@ from mcdenoise.data.checksums import block_crcs
 from mcdenoise.data.image_folder import ImageFolder
 from mcdenoise.errors import FormatError
 
-__all__ = ["verify_image", "find_image_folders", "verify_tree"]
+__all__ = ["verify_image", "find_image_folders", "verify_manifests", "verify_tree"]
 
 
 def verify_image(folder: str | os.PathLike, *, full: bool = True) -> str | None:
@@ -59,8 +59,26 @@ def find_image_folders(root: str | os.PathLike) -> list[Path]:
     return out
 
 
+def verify_manifests(root: str | os.PathLike) -> list[str]:
+    """One line per dataset under ``root`` whose manifest.json is invalid (bad split, a path listed
+    twice, a scene in two splits, a listed image missing...)."""
+    from mcdenoise.data.dataset import Dataset
+
+    problems = []
+    for dirpath, dirnames, filenames in os.walk(root):
+        dirnames[:] = sorted(d for d in dirnames if not d.startswith("."))
+        if "manifest.json" in filenames:
+            try:
+                Dataset(dirpath)
+            except FormatError as e:
+                problems.append(str(e))
+        if "meta.json" in filenames:
+            dirnames[:] = []
+    return problems
+
+
 def verify_tree(root: str | os.PathLike, *, full: bool = True) -> tuple[int, list[str]]:
-    """(number of image folders checked, one line per damaged one) for every image under ``root``."""
+    """(number of image folders checked, one line per damaged image or invalid manifest) under ``root``."""
     folders = find_image_folders(root)
     problems = [p for p in (verify_image(f, full=full) for f in folders) if p is not None]
-    return len(folders), problems
+    return len(folders), verify_manifests(root) + problems
