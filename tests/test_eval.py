@@ -251,3 +251,11 @@ def test_image_folder_and_folder_of_images(data: Path, tmp_path: Path) -> None:
                    html=False, progress=False)
     assert [im["id"] for im in doc["images"]] == ["002", "scenes/001", "scenes/002"]
     assert [im["effects"] for im in doc["images"]] == [["depth_of_field"], [], ["depth_of_field"]]
+
+
+def test_spp_above_the_stored_count_is_refused(data: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Catches issue 22 item 10: `eval --spp 64` on 8-spp data exited 0 with an empty report; it
+    must be one line naming the stored spp, and write no report."""
+    _one_line_error(["eval", "--data", str(data), "--spp", "64", "--out", str(tmp_path / "r"), "--no-progress"], capsys,
+                    r"--spp 64: .*stores 8 spp")
+    assert not (tmp_path / "r").exists()

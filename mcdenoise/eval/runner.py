@@ -214,6 +214,18 @@ def _run_timed(method: Method, prepared: Any, device: torch.device) -> tuple[np.
     return out, time.perf_counter() - t0
 
 
+def _check_runnable(images: list[EvalImage], ks: list[int]) -> None:
+    """Refuse sample counts no image can give (an empty report with exit 0 otherwise)."""
+    def runs(im: EvalImage, k: int) -> bool:
+        stored = im.folder.meta.spp
+        return k == stored or (k < stored and im.folder.samples is not None)
+
+    if images and not any(runs(im, k) for im in images for k in ks):
+        stored = ", ".join(str(s) for s in sorted({im.folder.meta.spp for im in images}))
+        raise EvalError(f"--spp {' '.join(map(str, ks))}: no image can be evaluated at that sample count; "
+                        f"the data stores {stored} spp (choose --spp at most that)")
+
+
 def summarize(rows: list[dict[str, Any]], images: list[EvalImage], methods: list[str], spps: list[int],
               metric_names: list[str]) -> list[dict[str, Any]]:
     """Means per (subset, method, spp): every metric over the subset's images, and ms per megapixel
@@ -312,6 +324,7 @@ def evaluate(
     if not data_list:
         raise EvalError("no data folder given (--data)")
     images, notes = collect_images(data_list, split, max_images)
+    _check_runnable(images, ks)
     dev = _device(device)
     if threads is not None and threads < 1:
         raise EvalError(f"--threads must be at least 1, got {threads}")
