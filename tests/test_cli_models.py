@@ -14,7 +14,7 @@ def test_wskp_listing_shows_training_and_inference_forms(capsys: pytest.CaptureF
     0.08 MFLOP/px) while the paper times the re-parameterised network (27,382, 0.055 MFLOP/px).
     Both must appear, in the JSON and in the text, with the literal counts of the paper preset;
     models without a fused form get no inference entry."""
-    only = ["--model", "wskp", "--model", "wskp_mr", "--preset", "paper"]
+    only = ["--model", "wskp", "--model", "wskp_mr", "--preset", "paper", "--flops"]
     assert cli.main(["models", "--json", *only]) == 0
     rows = {r["name"]: r for r in json.loads(capsys.readouterr().out)}
     assert set(rows) == {"wskp", "wskp_mr"}
@@ -59,3 +59,26 @@ def test_unknown_preset_is_refused(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["models", "--preset", "bogus", "--no-flops"]) == 2
     err = capsys.readouterr().err.strip()
     assert "no model has preset(s) bogus" in err and "small" in err and "\n" not in err
+
+
+def test_default_listing_counts_no_flops_and_shows_shipped_weights(monkeypatch: pytest.MonkeyPatch,
+                                                                   capsys: pytest.CaptureFixture[str]) -> None:
+    """Bugs caught (issue 18): the default `mcdenoise models` counted FLOPs of every preset (41 s on
+    2 cores) and did not say which models have shipped weights (the ones `denoise --model NAME`
+    and `eval --models NAME` can use)."""
+    import mcdenoise.models.info as info
+
+    def no_counting(*a: object, **k: object) -> float:
+        raise AssertionError("FLOPs counted without --flops")
+
+    monkeypatch.setattr(info, "flops_per_pixel", no_counting)
+    assert cli.main(["models", "--model", "wskp", "--model", "wskp_mr"]) == 0
+    text = capsys.readouterr().out
+    assert "small          4,564 params, input: pixels, training form, shipped weights" in text
+    assert "shipped weights" not in text[text.index("wskp_mr  ("):text.index("Shipped weights")]
+    assert "Shipped weights (usable by name in denoise/eval): " in text and "wskp (small)" in text
+    assert "add --flops" in text
+    assert cli.main(["models", "--json", "--model", "wskp"]) == 0
+    presets = json.loads(capsys.readouterr().out)[0]["presets"]
+    assert presets["small"]["shipped_weights"] is True and presets["paper"]["shipped_weights"] is False
+    assert "flops_per_pixel" not in presets["paper"]
