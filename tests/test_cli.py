@@ -26,6 +26,21 @@ def test_every_subcommand_has_help() -> None:
         assert e.value.code == 0
 
 
+def test_help_descriptions_are_whole_sentences(capsys: pytest.CaptureFixture[str]) -> None:
+    """Bug caught (issue 18): `demo --help` showed only the docstring's first line, cut
+    mid-sentence ("... denoise it with the shipped"); every description ends its sentence."""
+    parser = cli.build_parser()
+    for name in cli.SUBCOMMANDS:
+        with pytest.raises(SystemExit):
+            parser.parse_args([name, "--help"])
+        out = capsys.readouterr().out
+        desc = " ".join(out.split("\n\n")[1].split())
+        assert desc.endswith((".", ")", "`")), (name, desc)
+    with pytest.raises(SystemExit):
+        parser.parse_args(["demo", "--help"])
+    assert "the HTML comparison." in " ".join(capsys.readouterr().out.split())
+
+
 def test_not_landed_subcommand_says_so_and_exits_2(capsys: pytest.CaptureFixture[str]) -> None:
     landed = set()
     for name in cli.SUBCOMMANDS:

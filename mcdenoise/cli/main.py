@@ -58,10 +58,15 @@ def build_parser() -> argparse.ArgumentParser:
                 raise
             _not_landed_parser(sub, name, help_)
             continue
-        p = sub.add_parser(name, help=help_, description=(mod.__doc__ or help_).strip().splitlines()[0])
+        p = sub.add_parser(name, help=help_, description=_first_paragraph(mod.__doc__ or help_))
         mod.add_parser(p)
         p.set_defaults(_run=mod.run)
     return parser
+
+
+def _first_paragraph(doc: str) -> str:
+    """The docstring's first paragraph as one line (its first line alone cut sentences short)."""
+    return " ".join(doc.strip().split("\n\n", 1)[0].split())
 
 
 def main(argv: list[str] | None = None) -> int:
