@@ -259,3 +259,99 @@ def test_spp_above_the_stored_count_is_refused(data: Path, tmp_path: Path, capsy
     _one_line_error(["eval", "--data", str(data), "--spp", "64", "--out", str(tmp_path / "r"), "--no-progress"], capsys,
                     r"--spp 64: .*stores 8 spp")
     assert not (tmp_path / "r").exists()
+
+
+def test_page_and_terminal_lead_with_the_ranked_summary(report: tuple[Path, dict, Path], data: Path,
+                                                        models: list[Path], tmp_path: Path,
+                                                        capsys: pytest.CaptureFixture[str]) -> None:
+    """Bugs caught (issue 18 section 3): the page opened on an 11-column table with no ranking,
+    nothing highlighted and no ratio to OIDN; its title was "mcdenoise eval" whatever the data;
+    crop rows were inline figures whose spp label ("4 spp" vs "16 spp") shifted each row against
+    the others; `mcdenoise eval` printed only a path."""
+    from mcdenoise.eval.ranking import ranked
+
+    out, doc, _ = report
+    page = (out / "index.html").read_text()
+    assert f"<title>{data.name} (test split): 3 image(s) at 2, 4, 8 spp" in page
+    assert page.index("<table class='rank'>") < page.index("Every metric, means over all images")
+    for t in ranked(doc):
+        vals = [r["relmse"] for r in t["rows"]]
+        assert vals == sorted(vals)  # best first
+        assert t["rows"][0]["best"] >= {"relmse"}
+        if oidn_available():
+            assert t["columns"][-1][0] == "vs_oidn"
+            assert next(r for r in t["rows"] if r["method"] == "oidn-high")["vs_oidn"] == 1.0
+    first = page[page.index("<table class='rank'>"):page.index("</table>")]
+    best = ranked(doc)[0]["rows"][0]
+    assert f"<td class='name'>{best['method']}</td><td><b>" in first  # the best relMSE in bold
+    assert "x OIDN high" in first or not oidn_available()
+    assert "torch 1 thread(s)" in page
+    # The crops: one table per image, every row the same cells (method columns + reference).
+    tables = re.findall(r"<table class='crops'>(.*?)</table>", page, re.S)
+    assert len(tables) == 3 and "<figure>" not in page
+    for tb in tables:
+        rows = re.findall(r"<tr>(.*?)</tr>", tb, re.S)
+        assert len(rows) == 4  # header + 3 spp
+        assert len({r.count("<td") + r.count("<th") for r in rows}) == 1
+
+    argv = ["eval", "--models", str(models[0]), "--data", str(data), "--spp", "4", "--out", str(tmp_path / "r"),
+            "--no-oidn", "--no-html", "--no-progress", "--threads", "1", "--max-images", "2"]
+    assert main(argv) == 0
+    text = capsys.readouterr().out
+    assert "4 spp, mean over 2 image(s), best relMSE first" in text
+    lines = [ln.split() for ln in text.splitlines() if re.match(r"\s+\d+\s", ln)]
+    assert [ln[1] for ln in lines] and lines[-1][1] == "noisy"  # noisy ranks last here
+    assert "torch 1 thread(s)" in text
+
+
+def test_all_dof_images_do_not_repeat_the_tables(report: tuple[Path, dict, Path], tmp_path: Path) -> None:
+    """Bug caught (issue 18): when every image has depth of field (the demo), the page and the
+    Markdown block repeated the main tables under "depth-of-field / motion-blur"."""
+    from mcdenoise.eval import html as page_mod
+    from mcdenoise.eval.ranking import same_images
+    from mcdenoise.eval.resultsmd import render_block
+
+    _, doc, _ = report
+    assert not same_images(doc)
+    all_dof = {**doc, "summary": [s for s in doc["summary"] if s["subset"] == "all"]
+               + [{**s, "subset": "dof_motion"} for s in doc["summary"] if s["subset"] == "all"]}
+    assert same_images(all_dof)
+    page = page_mod.write_report(tmp_path, all_dof, page_mod.CropWriter(tmp_path)).read_text()
+    assert "All 3 images have depth of field or motion blur." in page
+    assert "depth-of-field / motion-blur images</h" not in page.lower() and page.count("<table class='rank'>") == 3
+    md = render_block(all_dof)
+    assert "Depth-of-field / motion-blur images only" not in md and "All 3 images have depth of field" in md
+    # A real subset keeps its own tables.
+    page = page_mod.write_report(tmp_path, doc, page_mod.CropWriter(tmp_path)).read_text()
+    assert "<h3>Depth-of-field / motion-blur images</h3>" in page and page.count("<table class='rank'>") == 6
+
+
+def test_run_folder_with_a_taken_label_keeps_its_path(data: Path, models: list[Path], tmp_path: Path) -> None:
+    """Bug caught (issue 18): a run folder or weights file whose name is a shipped model's
+    (`runs/layer` beside `layer`) was relabelled `layer-2` without a word; its label is now the
+    path as given, and a note says so."""
+    import shutil
+
+    from mcdenoise.models.weights import shipped
+
+    if not any(s.name == "wskp" and s.preset == "small" for s in shipped()):
+        pytest.skip("no shipped wskp weights")
+    mine = tmp_path / "runs" / "wskp.safetensors"
+    mine.parent.mkdir()
+    shutil.copyfile(models[0], mine)
+    doc = evaluate(models=["wskp", str(mine)], data=[data], out=tmp_path / "r", spp=[4], oidn=[], classic=False,
+                   max_images=1, html=False, progress=False)
+    assert [m["name"] for m in doc["methods"]] == ["noisy", "wskp", str(mine)]
+    assert any(n.startswith(f"{mine}: labelled") and "'wskp' was taken" in n for n in doc["notes"])
+
+
+@pytest.mark.skipif(not oidn_available(), reason="pyoidn (OIDN 2.5.1) not installed")
+def test_threads_reach_oidn(report: tuple[Path, dict, Path]) -> None:
+    """Bug caught (issue 18 section 2): `eval --threads 1` gave torch one thread and OIDN every
+    core; both must get the count, and results.json and the tables must say what each had."""
+    _, doc, _ = report
+    assert doc["config"]["threads"] == 1 and doc["config"]["oidn_threads"] == 1
+    assert {m["threads"] for m in doc["methods"] if m["kind"] == "oidn"} == {1}
+    from mcdenoise.eval.ranking import timing_note
+
+    assert "torch 1 thread(s), OIDN 1 thread(s)" in timing_note(doc)

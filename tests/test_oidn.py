@@ -196,3 +196,26 @@ def test_missing_package_reports_how_to_install(monkeypatch: pytest.MonkeyPatch)
     assert oidn_mod.oidn_available() is False
     with pytest.raises(OIDNError, match=r"pip install 'pyoidn==2\.5\.1\.0'"):
         oidn_denoise(_noisy()[1])
+
+
+@needs_oidn
+def test_threads_pin_the_device_and_keep_the_pixels() -> None:
+    """Bug caught (issue 18 section 2): `eval --threads 1` limited torch to one thread while OIDN
+    ran on every core, so ms/MP compared 1 core against all. ``threads=N`` must run on a device
+    committed with N threads (as OIDN reports it), give the default device's pixels, with and
+    without guides and at every quality, and refuse a count below 1 in one line."""
+    from mcdenoise.eval.oidn import device_threads
+
+    assert device_threads(1) == 1
+    assert device_threads(2) == 2
+    _, noisy = _noisy(7)
+    albedo, normal = _guides(noisy.shape)
+    for q in QUALITIES:
+        _assert_same_denoise(oidn_denoise(noisy, albedo, normal, quality=q, threads=1),
+                             oidn_denoise(noisy, albedo, normal, quality=q))
+    # Guides dropped on the pinned device between calls: the albedo of the call before is not reused.
+    _assert_same_denoise(oidn_denoise(noisy, threads=1), oidn_denoise(noisy))
+    small = noisy[:, :17, :23]
+    assert oidn_denoise(small, threads=1).shape == (3, 17, 23)
+    with pytest.raises(OIDNError, match="threads must be a positive integer, got 0"):
+        oidn_denoise(noisy, threads=0)

@@ -13,7 +13,8 @@ A model is a registered name (its shipped weights), a run folder of `mcdenoise t
 (NAME_<W>_spp<N>_d<D>.npy, default DIR/refs), as ../shared/valscenes: the inputs are rendered
 once (at the largest --spp, --render-seed, the reference's size and max depth) into --work and
 reused; the scenes folder is only read.
-REPORT_DIR gets results.json, results.csv and index.html (see docs/EVAL.md).
+REPORT_DIR gets results.json, results.csv and index.html (see docs/EVAL.md); the terminal gets
+the ranked summary the page leads with (per spp, best relMSE first, * marks each column's best).
 """
 
 from __future__ import annotations
@@ -48,7 +49,8 @@ def add_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--max-images", type=int, help="at most N images per data folder")
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto",
                    help="device of the models and NL-means (default auto: CUDA when available)")
-    p.add_argument("--threads", type=int, help="torch CPU threads (default: torch's; 1 is faster on busy cores)")
+    p.add_argument("--threads", type=int,
+                   help="CPU threads of torch and OIDN alike (default: torch's, OIDN every core; 1 is faster on busy cores)")
     p.add_argument("--precision", nargs="+", default=["float32"], choices=("float32", "bfloat16", "auto"),
                    help="run every model in each: float32 (default), bfloat16 (convolution trunks; rows labelled +bf16), auto")
     p.add_argument("--results-md", type=Path, help="also write the tables into this Markdown file...")
@@ -91,6 +93,15 @@ def run(args: argparse.Namespace) -> int:
         progress=not args.no_progress,
         command=command,
     )
+    from mcdenoise.eval.ranking import same_images, summary_text
+
+    for note in doc["notes"]:
+        if "labelled" in note:
+            print(f"note: {note}", file=sys.stderr, flush=True)
+    print(summary_text(doc))
+    if any(s["subset"] == "dof_motion" for s in doc["summary"]) and not same_images(doc):
+        print("\nDepth-of-field / motion-blur images only:\n" + summary_text(doc, "dof_motion").rsplit("\n", 1)[0])
+    sys.stdout.flush()
     n = len({r["image"] for r in doc["rows"]})
     print(f"{args.out}: {n} images x spp {', '.join(map(str, doc['config']['spp']))}, "
           f"{len(doc['methods'])} methods" + (f"; {args.results_md} block eval:{args.section}" if args.results_md else ""),

@@ -93,19 +93,25 @@ class NoisyMethod(Method):
 
 
 class OIDNMethod(Method):
-    """Open Image Denoise 2.5.1 (``pyoidn``), HDR, with the albedo and normal guides when stored."""
+    """Open Image Denoise 2.5.1 (``pyoidn``), HDR, with the albedo and normal guides when stored;
+    ``threads``: the CPU device's thread count (default every core)."""
 
     kind = "oidn"
 
-    def __init__(self, quality: str) -> None:
+    def __init__(self, quality: str, threads: int | None = None) -> None:
         super().__init__(f"oidn-{quality}")
         self.quality = quality
+        self.threads = threads
+        self._used: int | None = None
 
     @property
     def info(self) -> dict[str, Any]:
-        from mcdenoise.eval.oidn import version
+        from mcdenoise.eval.oidn import device_threads, version
 
-        return {**super().info, "quality": self.quality, "hdr": True, "guides": ["albedo", "normal"], "oidn": version()}
+        if self._used is None:
+            self._used = device_threads(self.threads)  # what the device reports, not what was asked
+        return {**super().info, "quality": self.quality, "hdr": True, "guides": ["albedo", "normal"], "oidn": version(),
+                "threads": self._used}
 
     def prepare(self, x: Inputs) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
         g = x.guides
@@ -116,7 +122,7 @@ class OIDNMethod(Method):
         from mcdenoise.eval.oidn import oidn_denoise
 
         color, albedo, normal = prepared
-        return oidn_denoise(color, albedo, normal, hdr=True, quality=self.quality)
+        return oidn_denoise(color, albedo, normal, hdr=True, quality=self.quality, threads=self.threads)
 
 
 class ClassicMethod(Method):

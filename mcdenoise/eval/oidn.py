@@ -15,20 +15,24 @@ call and checks the device error after each step. What this module adds:
 * :func:`version`, read from the loaded library, so reports say which OIDN produced a number.
 
 pyoidn keeps one CPU device and filter per process and serialises calls, so this is safe from
-threads; the device uses every core (OIDN's default), and threaded runs are not bitwise
-repeatable (see ``tests/test_oidn.py``).
+threads; that device uses every core (OIDN's default), and threaded runs are not bitwise
+repeatable (see ``tests/test_oidn.py``). ``threads=N`` runs on a device of its own committed with
+OIDN's ``numThreads`` parameter (one per count, kept for the process), so a timing can give OIDN
+the thread count torch has (``mcdenoise eval --threads N``).
 """
 
 from __future__ import annotations
 
+import atexit
 import functools
+import threading
 from typing import Any
 
 import numpy as np
 
 from mcdenoise.errors import McDenoiseError
 
-__all__ = ["OIDNError", "QUALITIES", "oidn_available", "oidn_denoise", "version"]
+__all__ = ["OIDNError", "QUALITIES", "oidn_available", "oidn_denoise", "device_threads", "version"]
 
 #: OIDN's quality presets, best and slowest first; ``high`` is OIDN's default.
 QUALITIES: tuple[str, ...] = ("high", "balanced", "fast")
@@ -79,6 +83,78 @@ def version() -> str:
     return f"{packed // 10000}.{packed // 100 % 100}.{packed % 100}"
 
 
+class _Pinned:
+    """A CPU device committed with ``numThreads``, its RT filter, and the images bound last."""
+
+    def __init__(self, pyoidn: Any, threads: int) -> None:
+        self.device = pyoidn.Device(pyoidn.OIDN_DEVICE_TYPE_CPU)
+        self.device.set_int("numThreads", int(threads))
+        self.device.commit()
+        self._check("device commit")
+        self.filter = pyoidn.Filter(self.device, pyoidn.OIDN_FILTER_TYPE_RT)
+        self._check("filter creation")
+        self.bound: dict[str, np.ndarray] = {}  # shared with OIDN: kept alive until replaced
+
+    def _check(self, step: str) -> None:
+        msg = self.device.get_error()
+        if msg:
+            raise RuntimeError(f"{step}: {msg}")
+
+    def run(self, pyoidn: Any, images: dict[str, np.ndarray], hdr: bool, clean_aux: bool, quality: str) -> None:
+        flt = self.filter
+        for name in self.bound:
+            if name not in images:
+                flt.unset_image(name)
+        for name, arr in images.items():
+            flt.set_image(name, arr, pyoidn.OIDN_FORMAT_FLOAT3)
+        self.bound = images
+        flt.set_bool("hdr", hdr)
+        flt.set_bool("cleanAux", clean_aux)
+        flt.set_quality({"high": pyoidn.OIDN_QUALITY_HIGH, "balanced": pyoidn.OIDN_QUALITY_BALANCED,
+                         "fast": pyoidn.OIDN_QUALITY_FAST}[quality])
+        flt.commit()
+        self._check("filter commit")
+        flt.execute()
+        self._check("filter execution")
+
+    def release(self) -> None:
+        self.filter.release()
+        self.device.release()
+
+
+_PINNED: dict[int, _Pinned] = {}
+_PINNED_LOCK = threading.Lock()
+
+
+@atexit.register
+def _release_pinned() -> None:
+    with _PINNED_LOCK:
+        for p in _PINNED.values():
+            p.release()
+        _PINNED.clear()
+
+
+def _pinned(pyoidn: Any, threads: int) -> _Pinned:
+    if threads not in _PINNED:
+        _PINNED[threads] = _Pinned(pyoidn, threads)
+    return _PINNED[threads]
+
+
+def device_threads(threads: int | None = None) -> int:
+    """The thread count OIDN's CPU device runs with: ``threads`` when given (after committing a
+    device with it), else that of a default device (every core OIDN sees)."""
+    pyoidn = _pyoidn()
+    if threads is not None:
+        with _PINNED_LOCK:
+            return int(_pinned(pyoidn, threads).device.get_int("numThreads"))
+    device = pyoidn.Device(pyoidn.OIDN_DEVICE_TYPE_CPU)
+    try:
+        device.commit()
+        return int(device.get_int("numThreads"))
+    finally:
+        device.release()
+
+
 def _hwc(x: Any, name: str, shape: tuple[int, int] | None) -> np.ndarray:
     """``x`` (3, H, W), any real dtype, any strides -> contiguous float32 (H, W, 3)."""
     arr = np.asarray(x)
@@ -100,6 +176,7 @@ def oidn_denoise(
     hdr: bool = True,
     quality: str = "high",
     clean_aux: bool = False,
+    threads: int | None = None,
 ) -> np.ndarray:
     """Denoise ``color`` (3, H, W) linear radiance with OIDN's ``RT`` filter.
 
@@ -116,6 +193,8 @@ def oidn_denoise(
             (OIDN 2.3+ uses a larger prefilter there).
         clean_aux: the guides are noise-free (e.g. from a reference render); OIDN then skips
             its own prefiltering of them.
+        threads: run on a CPU device limited to this many threads (default: pyoidn's shared
+            device, every core).
 
     Returns:
         (3, H, W) float32 denoised radiance, a new contiguous array.
@@ -129,8 +208,16 @@ def oidn_denoise(
     shape = rgb.shape[:2]
     given = {"albedo": albedo, "normal": normal}
     guides = {name: _hwc(g, name, shape) for name, g in given.items() if g is not None}
+    if threads is not None and (isinstance(threads, bool) or not isinstance(threads, int) or threads < 1):
+        raise OIDNError(f"OIDN threads must be a positive integer, got {threads!r}")
     try:
-        out = pyoidn.denoise(rgb, **guides, hdr=bool(hdr), clean_aux=bool(clean_aux), quality=quality)
+        if threads is None:
+            out = pyoidn.denoise(rgb, **guides, hdr=bool(hdr), clean_aux=bool(clean_aux), quality=quality)
+        else:
+            out = np.empty_like(rgb)
+            with _PINNED_LOCK:
+                _pinned(pyoidn, threads).run(pyoidn, {"color": rgb, **guides, "output": out}, bool(hdr),
+                                             bool(clean_aux), quality)
     except (RuntimeError, ValueError, TypeError) as e:
         msg = " ".join(str(e).split())  # one line, whatever the library sent
         raise OIDNError(f"OIDN {version()} failed: {msg}") from e

@@ -107,7 +107,11 @@ def render_block(doc: dict[str, Any]) -> str:
     if models:
         lines += ["", "relMSE per model: improvement over the noisy input and ratio to OIDN `high` "
                       "(below 1 beats OIDN).", "", *models, "", *_floors(doc)]
-    if n_sub:
+    from mcdenoise.eval.ranking import same_images
+
+    if n_sub and same_images(doc):
+        lines += ["", f"All {n_sub} images have depth of field or motion blur: the tables above are that subset's."]
+    elif n_sub:
         lines += ["", f"Depth-of-field / motion-blur images only ({n_sub}):", "", *_means(doc, "dof_motion")]
         sub_models = _model_table(doc, "dof_motion")
         if sub_models:

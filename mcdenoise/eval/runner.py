@@ -155,9 +155,14 @@ def _device(device: str | None) -> torch.device:
 
 
 def build_methods(models: Sequence[str | os.PathLike], oidn: Sequence[str], classic: bool,
-                  device: torch.device, precisions: Sequence[str] = ("float32",)) -> list[Method]:
-    """Noisy, OIDN per quality, NL-means, then each model in each precision (labels made
-    unique; a bfloat16 run of a model is labelled ``LABEL+bf16``)."""
+                  device: torch.device, precisions: Sequence[str] = ("float32",), oidn_threads: int | None = None,
+                  notes: list[str] | None = None) -> list[Method]:
+    """Noisy, OIDN per quality (on ``oidn_threads`` threads; default every core), NL-means, then
+    each model in each precision; a bfloat16 run of a model is labelled ``LABEL+bf16``.
+
+    Labels stay unique: a run folder or weights file whose label is taken (``runs/layer`` beside
+    the shipped ``layer``) is labelled by its path as given; only a label still taken gets a
+    ``-N`` suffix, and every relabelling is said in ``notes``."""
     from mcdenoise.models.inference import resolve_precision
     from mcdenoise.models.weights import load_denoiser
 
@@ -169,7 +174,7 @@ def build_methods(models: Sequence[str | os.PathLike], oidn: Sequence[str], clas
             if q not in QUALITIES:
                 raise EvalError(f"OIDN quality {q!r}: expected one of {', '.join(QUALITIES)}")
         _pyoidn()  # one-line OIDNError now rather than after the first image
-        methods += [OIDNMethod(q) for q in dict.fromkeys(oidn)]
+        methods += [OIDNMethod(q, oidn_threads) for q in dict.fromkeys(oidn)]
     if classic:
         methods.append(ClassicMethod(device=device))
     taken = {m.name for m in methods}
@@ -180,11 +185,17 @@ def build_methods(models: Sequence[str | os.PathLike], oidn: Sequence[str], clas
     for spec in models:
         for prec in resolved:
             net, info = load_denoiser(spec, device=device)
-            label = str(info.get("label") or info["name"]) + ("+bf16" if prec == "bfloat16" else "")
+            suffix = "+bf16" if prec == "bfloat16" else ""
+            label = str(info.get("label") or info["name"]) + suffix
+            first = label
+            if label in taken and info.get("source") in ("run", "file"):
+                label = str(spec).rstrip("/\\") + suffix  # the path the user typed says which one it is
             base, n = label, 2
             while label in taken:
                 label, n = f"{base}-{n}", n + 1
             taken.add(label)
+            if label != first and notes is not None:
+                notes.append(f"{spec}: labelled {label!r} ({first!r} was taken)")
             methods.append(ModelMethod(label, net, {**info, "precision": prec}, device, precision=prec))
     return methods
 
@@ -295,8 +306,10 @@ def evaluate(
         classic: run feature-guided NL-means.
         max_images: at most this many images per data folder.
         device: ``cpu``, ``cuda`` or ``auto`` (CUDA when available) for the models and NL-means.
-        threads: torch CPU threads during the evaluation (default: torch's); 1 is much faster on
-            a machine whose cores are busy with other work, and the count is in the provenance.
+        threads: torch CPU threads during the evaluation (default: torch's), and OIDN's too (default:
+            every core), so both are timed on the same cores; 1 is much faster on a machine whose
+            cores are busy with other work. Both counts are in results.json (``config.threads``,
+            ``config.oidn_threads``) and under every table.
         precision: run every model in each of these (``float32``, ``bfloat16``, ``auto``; see
             :func:`mcdenoise.models.inference.prepare_inference`); bfloat16 rows are labelled
             ``+bf16``, so one report compares both.
@@ -333,7 +346,7 @@ def evaluate(
         torch.set_num_threads(threads)
     try:
         doc = _evaluate(models, data_list, out, split, ks, list(oidn), classic, max_images, dev, metric_names,
-                        images, notes, html, progress, command, save_images, tuple(precision))
+                        images, notes, html, progress, command, save_images, tuple(precision), threads)
     finally:
         torch.set_num_threads(old_threads)
     if results_md is not None and section is not None:
@@ -357,11 +370,12 @@ def _save_images(folder: Path, k: int, outputs: dict[str, np.ndarray], ref: np.n
 def _evaluate(models: Sequence[str | os.PathLike], data_list: list[Any], out: Path, split: str, ks: list[int],
               oidn: list[str], classic: bool, max_images: int | None, dev: torch.device, metric_names: list[str],
               images: list[EvalImage], notes: list[str], html: bool, progress: bool, command: str | None,
-              save_images: bool = False, precisions: tuple[str, ...] = ("float32",)) -> dict[str, Any]:
+              save_images: bool = False, precisions: tuple[str, ...] = ("float32",),
+              threads: int | None = None) -> dict[str, Any]:
     """The evaluation loop and the report folder (arguments checked by :func:`evaluate`)."""
     from tqdm import tqdm
 
-    methods = build_methods(models, list(oidn), classic, dev, precisions)
+    methods = build_methods(models, list(oidn), classic, dev, precisions, oidn_threads=threads, notes=notes)
     prov = provenance(dev, bool(oidn))
     if command is None:
         command = f"mcdenoise.eval.evaluate(models={list(map(str, models))}, data={list(map(str, data_list))}, " \
@@ -412,7 +426,9 @@ def _evaluate(models: Sequence[str | os.PathLike], data_list: list[Any], out: Pa
             "provenance": prov,
             "config": {"models": [str(s) for s in models], "data": [str(d) for d in data_list], "split": split,
                        "spp": ks, "oidn": list(oidn), "classic": classic, "max_images": max_images,
-                       "device": str(dev), "threads": torch.get_num_threads(), "metrics": metric_names},
+                       "device": str(dev), "threads": torch.get_num_threads(),
+                       "oidn_threads": next((m.info["threads"] for m in methods if m.kind == "oidn"), None),
+                       "metrics": metric_names},
             "methods": [m.info for m in methods],
             "images": [im.to_json() for im in images],
             "notes": notes,
