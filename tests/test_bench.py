@@ -178,3 +178,20 @@ def test_unmeasured_target_is_not_reported_as_failed() -> None:
     assert rows["sbmc:small"]["met"] is False
     line = next(ln for ln in markdown(res).splitlines() if ln.startswith("| kpcn:small | - | <= 1x"))
     assert line.endswith("| not measured | - | not measured |") and "**no**" not in line, line
+
+
+def test_overloaded_machine_is_warned_about() -> None:
+    """Bug caught (issue 18): timings taken while the 1-minute load average exceeded the cores
+    (a render in the background) were printed without a word; the report, and the log, warn."""
+    from mcdenoise.bench.timing import busy_warning, usable_cores
+
+    n = usable_cores()
+    assert busy_warning(load=float(n)) is None
+    w = busy_warning("at start", load=n + 1.5)
+    assert w is not None and f"load average {n + 1.5:.2f} at start exceeds the {n} usable core(s)" in w
+    res = _fake_result()
+    res["machine"].update({"load_start": 0.5, "load_end": 0.7, "oidn_threads": 1})
+    text = markdown(res)
+    assert "**Warning**" not in text and "OIDN 2.5.1 (1 threads)" in text
+    res["machine"]["load_end"] = 3.9
+    assert "**Warning**: load average 3.9 at end exceeded the 2 cores" in markdown(res)

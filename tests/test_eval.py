@@ -355,3 +355,23 @@ def test_threads_reach_oidn(report: tuple[Path, dict, Path]) -> None:
     from mcdenoise.eval.ranking import timing_note
 
     assert "torch 1 thread(s), OIDN 1 thread(s)" in timing_note(doc)
+
+
+def test_overloaded_machine_is_warned_about_under_the_tables(data: Path, tmp_path: Path,
+                                                              monkeypatch: pytest.MonkeyPatch) -> None:
+    """Bug caught (issue 18): times taken while the load average exceeded the core count (a
+    render in the background) were reported like any other; a note and the line under the
+    ranked tables now say so."""
+    import os
+
+    from mcdenoise.eval.ranking import summary_text
+
+    monkeypatch.setattr(os, "getloadavg", lambda: (99.0, 99.0, 99.0))
+    doc = evaluate(data=[data], out=tmp_path / "r", spp=[4], oidn=[], classic=True, max_images=1, html=False,
+                   progress=False)
+    assert sum(n.startswith("timing: load average 99.00") for n in doc["notes"]) == 2  # at start and at end
+    assert "Warning: load average 99.00 at start exceeds" in summary_text(doc)
+    monkeypatch.setattr(os, "getloadavg", lambda: (0.0, 0.0, 0.0))
+    doc = evaluate(data=[data], out=tmp_path / "r", spp=[4], oidn=[], classic=True, max_images=1, html=False,
+                   progress=False)
+    assert not any(n.startswith("timing:") for n in doc["notes"]) and "Warning" not in summary_text(doc)

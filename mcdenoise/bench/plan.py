@@ -104,6 +104,9 @@ class BenchConfig:
     memory_fraction: float = 0.4
     """Skip an entry whose inputs would exceed this fraction of the available memory."""
     device: str = "cpu"
+    oidn_threads: int | None = None
+    """Threads of OIDN's CPU device (``bench --threads N`` sets torch's and this alike); None:
+    every core (OIDN's default)."""
     fast: bool = True
     """Fast inference paths (:mod:`mcdenoise.models.inference`); False times the reference."""
     precision: str = "auto"

@@ -53,6 +53,14 @@ def _fmt(x: float | None, spec: str, none: str = "-") -> str:
     return none if x is None else format(x, spec)
 
 
+def _busy(machine: dict[str, Any], key: str, when: str) -> str | None:
+    """The overload warning of a recorded load average against the recorded core count."""
+    load, cores = machine.get(key), machine.get("cores")
+    if load is None or not cores or load <= cores:
+        return None
+    return f"load average {load:g} {when} exceeded the {cores} cores: other work shared the CPU, times are slower and noisier"
+
+
 def _met(met: bool | None) -> str:
     return "not measured" if met is None else "yes" if met else "**no**"
 
@@ -67,11 +75,15 @@ def markdown(res: dict[str, Any], command: str = "") -> str:
     pk = res["peak_conv"]
     lines = [
         f"Measured {m['date']} on {m['cpu']}, {m['cores']} cores, {m.get('memory_gib', '?')} GiB, "
-        f"torch {m['torch']} ({m['torch_threads']} threads), OIDN {m['oidn']}, device {m['device']}"
+        f"torch {m['torch']} ({m['torch_threads']} threads), OIDN {m['oidn']}"
+        + (f" ({m['oidn_threads']} threads)" if m.get("oidn_threads") else "") + f", device {m['device']}"
         + (f" ({m['gpu']})" if m.get("gpu") else "") + f"; load average {m.get('load_start')} at start, "
         f"{m.get('load_end')} at end; {res['wall_s']:.0f} s wall.",
         "",
     ]
+    busy = [w for w in (_busy(m, "load_start", "at start"), _busy(m, "load_end", "at end")) if w]
+    if busy:
+        lines += [f"**Warning**: {'; '.join(busy)}.", ""]
     if command:
         lines += [f"Command: `{command}`", ""]
     c = res["config"]

@@ -18,7 +18,7 @@ from torch.utils.flop_counter import FlopCounterMode
 
 from mcdenoise.bench.memory import MEMORY_METHOD, peak_call_memory
 from mcdenoise.bench.plan import ANCHOR_SPP, BenchConfig, Method, default_methods, priority
-from mcdenoise.bench.timing import interleaved_times, median_time, synchronizer
+from mcdenoise.bench.timing import busy_warning, interleaved_times, median_time, synchronizer
 from mcdenoise.data.channels import base_name, num_components
 from mcdenoise.models.inference import inference_context, prepare_inference, resolve_precision
 from mcdenoise.models.registry import build_model, synthetic_batch
@@ -32,8 +32,8 @@ def _stderr(msg: str) -> None:
     print(msg, file=sys.stderr, flush=True)
 
 
-def machine_info(device: str) -> dict[str, Any]:
-    """CPU model, cores, memory, torch and OIDN versions, load average, date."""
+def machine_info(device: str, oidn_threads: int | None = None) -> dict[str, Any]:
+    """CPU model, cores, memory, torch and OIDN versions and thread counts, load average, date."""
     cpu = platform.processor() or platform.machine()
     try:
         with open("/proc/cpuinfo") as f:
@@ -59,6 +59,9 @@ def machine_info(device: str) -> dict[str, Any]:
         from mcdenoise.eval.oidn import version
 
         info["oidn"] = version()
+        from mcdenoise.eval.oidn import device_threads
+
+        info["oidn_threads"] = device_threads(oidn_threads)
     except Exception as e:  # noqa: BLE001 -- reported, not fatal: OIDN entries then fail alike
         info["oidn"] = f"unavailable ({e})"
     return info
@@ -248,7 +251,8 @@ class _Runner:
             if m.is_oidn:
                 from mcdenoise.eval.oidn import oidn_denoise
 
-                calls[name] = lambda q=m.preset: oidn_denoise(oidn_in["radiance"], oidn_in["albedo"], oidn_in["normal"], quality=q)
+                calls[name] = lambda q=m.preset: oidn_denoise(oidn_in["radiance"], oidn_in["albedo"], oidn_in["normal"], quality=q,
+                                                              threads=self.cfg.oidn_threads)
             else:
                 model = self.models[m.label]
                 src = inputs[self.kind[m.label]]
@@ -321,10 +325,13 @@ class _Runner:
 def run_bench(cfg: BenchConfig, log: Log = _stderr) -> dict[str, Any]:
     """Every measurement of one bench run, as a JSON-ready dict (see module docstring)."""
     t0 = time.perf_counter()
-    info = machine_info(cfg.device)
+    info = machine_info(cfg.device, cfg.oidn_threads)
     precision = resolve_precision(cfg.precision, cfg.device) if cfg.fast else "float32"
-    log(f"bench on {info['cpu']} ({info['cores']} cores, {info['torch_threads']} torch threads), device {cfg.device}, "
-        f"precision {precision}")
+    log(f"bench on {info['cpu']} ({info['cores']} cores, {info['torch_threads']} torch threads, "
+        f"{info.get('oidn_threads', '?')} OIDN threads), device {cfg.device}, precision {precision}")
+    busy = busy_warning("at start", info.get("load_start"))
+    if busy:
+        log(f"warning: {busy}")
     gflops = peak_conv_gflops(cfg.peak_conv[0], cfg.peak_conv[1], cfg.device, precision=precision)
     log(f"peak 3x3 conv {cfg.peak_conv[0]} channels ({precision}): {gflops:.1f} GFLOP/s")
     runner = _Runner(cfg, log)
@@ -340,6 +347,9 @@ def run_bench(cfg: BenchConfig, log: Log = _stderr) -> dict[str, Any]:
             except Exception as e:  # noqa: BLE001 -- reported in the table
                 training.append({"method": m.label, "error": " ".join(str(e).split())[:200]})
     info["load_end"] = round(os.getloadavg()[0], 2) if hasattr(os, "getloadavg") else None
+    busy = busy_warning("at end", info["load_end"]) if info["load_end"] is not None else None
+    if busy:
+        log(f"warning: {busy}")
     params = {lb: sum(p.numel() for p in mdl.parameters()) for lb, mdl in runner.models.items()}
     return {
         "machine": info,

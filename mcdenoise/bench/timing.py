@@ -6,11 +6,36 @@ re-exports :func:`median_time`).
 
 from __future__ import annotations
 
+import os
 import statistics
 import time
 from typing import Any, Callable, Mapping
 
-__all__ = ["median_time", "interleaved_times", "synchronizer"]
+__all__ = ["median_time", "interleaved_times", "synchronizer", "usable_cores", "busy_warning"]
+
+
+def usable_cores() -> int:
+    """The cores this process may run on (its affinity mask; else every core)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not Linux
+        return os.cpu_count() or 1
+
+
+def busy_warning(when: str = "", load: float | None = None) -> str | None:
+    """A one-line warning when the 1-minute load average exceeds the usable cores: other work
+    then shares the CPU and every time measured is slower and noisier than on a quiet machine.
+    None when the machine is not overloaded or reports no load average. ``load`` overrides the
+    measured figure (tests, or a figure recorded earlier)."""
+    if load is None:
+        if not hasattr(os, "getloadavg"):
+            return None
+        load = os.getloadavg()[0]
+    cores = usable_cores()
+    if load <= cores:
+        return None
+    return (f"load average {load:.2f}{' ' + when if when else ''} exceeds the {cores} usable core(s): other work "
+            "shares the CPU, so these times are slower and noisier than on a quiet machine")
 
 
 def median_time(fn: Callable[[], Any], repeats: int, warmup: int = 0) -> float:

@@ -44,7 +44,7 @@ def add_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--rounds", type=int, help="timed rounds (default 3; quick 2)")
     p.add_argument("--budget", type=float, help="estimated seconds for the sizes after the first (default 300)")
     p.add_argument("--train-steps", type=int, help="timed training steps per model (default 3; 0 = no training figure)")
-    p.add_argument("--threads", type=int, help="torch threads (default: torch's)")
+    p.add_argument("--threads", type=int, help="torch and OIDN threads alike (default: torch's, OIDN every core)")
     p.add_argument("--precision", choices=("float32", "bfloat16", "auto"), default="auto",
                    help="convolution trunks: auto (bfloat16 where the device has it natively; default), float32, bfloat16")
     p.add_argument("--reference", action="store_true", help="time the reference paths (no RepVGG folding, no_grad)")
@@ -64,7 +64,8 @@ def run(args: argparse.Namespace) -> int:
         raise McDenoiseError("--device cuda: no CUDA device is available")
     if args.threads:
         torch.set_num_threads(args.threads)
-    over: dict[str, object] = {"device": args.device, "fast": not args.reference, "precision": args.precision}
+    over: dict[str, object] = {"device": args.device, "fast": not args.reference, "precision": args.precision,
+                               "oidn_threads": args.threads or None}
     if args.models:
         known = {e.name for e in list_models()} | {"oidn"}
         methods = [parse_method(t) for t in dict.fromkeys([*DEFAULT_METHODS, *args.models])]

@@ -73,9 +73,11 @@ def timing_note(doc: dict[str, Any]) -> str:
     if cfg.get("oidn"):
         threads += f", OIDN {oidn} thread(s)" if oidn is not None else ", OIDN every core"
     prec = f"; models in {' and '.join(precisions)}" if precisions else ""
+    busy = [n.removeprefix("timing: ") for n in doc["notes"] if n.startswith("timing: ")]
+    warn = f" Warning: {'; '.join(busy)}." if busy else ""
     return (f"ms/MP: wall time of the denoise call per megapixel on {p.get('device', '?')} "
             f"({p.get('cpu', p.get('machine', '?'))}), {threads}{prec}; x OIDN high: relMSE / OIDN high's "
-            "relMSE (below 1 beats it).")
+            f"relMSE (below 1 beats it).{warn}")
 
 
 def _fmt(v: Any, spec: str) -> str:

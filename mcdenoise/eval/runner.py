@@ -383,6 +383,11 @@ def _evaluate(models: Sequence[str | os.PathLike], data_list: list[Any], out: Pa
 
     from mcdenoise.eval import html as report
 
+    from mcdenoise.bench.timing import busy_warning
+
+    busy = busy_warning("at start")
+    if busy:
+        notes.append(f"timing: {busy}")
     rows: list[dict[str, Any]] = []
     warmed: set[str] = set()
     pairs = [(im, k) for im in images for k in ks]
@@ -418,6 +423,9 @@ def _evaluate(models: Sequence[str | os.PathLike], data_list: list[Any], out: Pa
             if save_images:
                 _save_images(tmp / "images" / im.id, k, outputs, ref)
         bar.close()
+        busy = busy_warning("at end")
+        if busy:
+            notes.append(f"timing: {busy}")
         names = [m.name for m in methods]
         doc: dict[str, Any] = {
             "format": RESULTS_FORMAT,
