@@ -78,7 +78,7 @@ def test_models_listing_json(capsys: pytest.CaptureFixture[str]) -> None:
 
     from mcdenoise.models.registry import MODELS
 
-    assert cli.main(["models", "--json", "--preset", "small"]) == 0
+    assert cli.main(["models", "--json", "--preset", "small", "--flops"]) == 0
     rows = {r["name"]: r for r in json.loads(capsys.readouterr().out)}
     assert set(rows) == set(MODELS)
     for r in rows.values():
@@ -94,3 +94,16 @@ def test_models_listing_json(capsys: pytest.CaptureFixture[str]) -> None:
     dpcn = build_model("dpcn", "small")
     weights = sum(m.weight.numel() for m in dpcn.modules() if isinstance(m, torch.nn.Conv2d))
     assert rows["dpcn"]["presets"]["small"]["flops_per_pixel"] == 2 * weights
+
+
+def test_precision_defaults_are_explained_in_both_helps(capsys: pytest.CaptureFixture[str]) -> None:
+    """Bug caught (issue 18): `eval --precision` defaulted to float32 while `denoise` defaulted to
+    auto, and neither help said so; each now names the other's default and why."""
+    parser = cli.build_parser()
+    helps = {}
+    for name in ("eval", "denoise"):
+        with pytest.raises(SystemExit):
+            parser.parse_args([name, "--help"])
+        helps[name] = " ".join(capsys.readouterr().out.split())
+    assert "float32 (default, unlike denoise's auto" in helps["eval"]
+    assert "eval defaults to float32" in helps["denoise"]

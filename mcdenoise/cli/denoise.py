@@ -36,7 +36,8 @@ def add_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--device", default=None, help="cpu or cuda (default: cuda when available)")
     p.add_argument("--precision", choices=("float32", "bfloat16", "auto"), default="auto",
                    help="convolution trunks: auto (default: bfloat16 where the CPU/GPU computes it natively, else float32), "
-                        "float32, bfloat16; the shipped models' test metrics agree within 2%% (docs/PERFORMANCE.md)")
+                        "float32, bfloat16; the shipped models' test metrics agree within 2%% (docs/PERFORMANCE.md); "
+                        "eval defaults to float32, so its figures are the same on every CPU")
     p.add_argument("--tile", default="auto", help="tile side in pixels, or auto (sized from --max-memory)")
     p.add_argument("--max-memory", default="4G", help="memory budget of one tile, e.g. 4G or 512M (default 4G)")
     p.add_argument("--preview", type=Path, default=None, help="also write an 8-bit sRGB PNG preview here")

@@ -52,7 +52,8 @@ def add_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--threads", type=int,
                    help="CPU threads of torch and OIDN alike (default: torch's, OIDN every core; 1 is faster on busy cores)")
     p.add_argument("--precision", nargs="+", default=["float32"], choices=("float32", "bfloat16", "auto"),
-                   help="run every model in each: float32 (default), bfloat16 (convolution trunks; rows labelled +bf16), auto")
+                   help="run every model in each: float32 (default, unlike denoise's auto: eval's figures must be the "
+                        "same on every CPU), bfloat16 (convolution trunks; rows labelled +bf16), auto (as denoise)")
     p.add_argument("--results-md", type=Path, help="also write the tables into this Markdown file...")
     p.add_argument("--section", help="...as its generated block eval:SECTION")
     p.add_argument("--no-html", action="store_true", help="only results.json and results.csv")
