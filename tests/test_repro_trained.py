@@ -182,3 +182,26 @@ def test_without_data_renders_the_cache_once_and_reuses_it(tmp_path: Path, monke
     lines: list[str] = []
     run_experiment(dataclasses.replace(exp, name="wskp-again"), steps=1, out=tmp_path, log=lines.append)
     assert manifest.stat().st_mtime_ns == before and not any("rendering" in s for s in lines)
+
+
+def test_data_without_references_is_one_line_naming_the_fix(tmp_path: Path, capsys) -> None:
+    """Bug caught (issue 18): README's training data (`dataset --ref-spp 0`) given to `repro
+    --data` failed inside the sampler with a bare ValueError (`no reference.exr to train
+    against`, a traceback); it must be one line naming the folder, the cause and the fix, before
+    any training starts."""
+    from mcdenoise.data.dataset import read_manifest
+    from mcdenoise.data.meta import seal_meta
+
+    data = make_tiny_dataset(tmp_path / "noref", size=16)
+    for e in read_manifest(data)[:2]:
+        img = data / e["path"]
+        meta = json.loads((img / "meta.json").read_text())
+        del meta["files"]["reference"]
+        (img / "meta.json").write_text(json.dumps(seal_meta(meta)))  # as a --ref-spp 0 render writes it
+        (img / "reference.exr").unlink()
+    assert main(["repro", "kpcn-vs-dpcn", "--data", str(data), "--steps", "1", "--out", str(tmp_path / "o"),
+                 "--quiet"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and f"{data}: 2 of 4 train/val images have no reference.exr" in err
+    assert "--ref-spp 64 or more" in err and "leave out --data" in err
+    assert not (tmp_path / "o" / "kpcn-vs-dpcn").exists()  # refused before any run folder

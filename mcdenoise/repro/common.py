@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
+from mcdenoise.errors import McDenoiseError
 from mcdenoise.io.atomic import atomic_file
 from mcdenoise.repro.report import METRIC_NAMES, plot_curves
 
@@ -31,6 +32,7 @@ __all__ = [
     "CACHE_DATASET",
     "procedural_cache",
     "describe_data",
+    "ReproDataError",
     "run_dir",
     "run_experiment",
     "METRIC_NAMES",
@@ -107,14 +109,28 @@ def procedural_cache(root: Path, log: Callable[[str], None] = print) -> Path:
     return root
 
 
+class ReproDataError(McDenoiseError, ValueError):
+    """The ``--data`` of a reproduction cannot serve it (no held-out split, no references)."""
+
+
 def describe_data(data: Path) -> dict[str, Any]:
-    """Image counts per split, size, spp and whether validation has references."""
+    """Image counts per split, size, spp and whether validation has references.
+
+    Raises :class:`ReproDataError` (one line naming the folder and the fix) when a split is
+    missing or an image has no reference: the variants train and are judged against references,
+    so data rendered with ``--ref-spp 0`` (README's training data) cannot feed them."""
     from mcdenoise.data.dataset import Dataset
 
     ds = Dataset(data)
     train, val = ds.images("train"), ds.images("val")
     if not train or not val:
-        raise ValueError(f"{data}: the reproductions need a train and a val split (held-out scenes)")
+        raise ReproDataError(f"{data}: the reproductions need a train and a val split (held-out scenes)")
+    bare = [im for im in [*train, *val] if not im.has_reference]
+    if bare:
+        raise ReproDataError(
+            f"{data}: {len(bare)} of {len(train) + len(val)} train/val images have no reference.exr (rendered with "
+            "--ref-spp 0?); the reproductions train and validate against references: render the dataset with "
+            "--ref-spp 64 or more, or leave out --data so repro renders its own")
     m = val[0].meta
     return {"path": str(data), "train_images": len(train), "val_images": len(val), "val_scenes": len(ds.scenes("val")),
             "width": m.width, "height": m.height, "spp": m.spp,
