@@ -299,6 +299,12 @@ def test_page_and_terminal_lead_with_the_ranked_summary(report: tuple[Path, dict
     assert main(argv) == 0
     text = capsys.readouterr().out
     assert "4 spp, mean over 2 image(s), best relMSE first" in text
+    one = tmp_path / "one"  # an image folder (the demo's render): no split in the title
+    import shutil
+
+    shutil.copytree(data / read_manifest(data)[1]["path"], one)
+    evaluate(data=[one], out=tmp_path / "r1", spp=[4], oidn=[], classic=False, progress=False)
+    assert "<title>one: 1 image(s) at 4 spp" in (tmp_path / "r1" / "index.html").read_text()
     lines = [ln.split() for ln in text.splitlines() if re.match(r"\s+\d+\s", ln)]
     assert [ln[1] for ln in lines] and lines[-1][1] == "noisy"  # noisy ranks last here
     assert "torch 1 thread(s)" in text

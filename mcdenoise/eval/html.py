@@ -265,7 +265,9 @@ def _title(doc: dict[str, Any]) -> str:
     names = [Path(d).name or str(d) for d in doc["config"]["data"]]
     data = ", ".join(names[:3]) + (f" and {len(names) - 3} more" if len(names) > 3 else "")
     spp = ", ".join(map(str, sorted({s["spp"] for s in doc["summary"]}) or doc["config"]["spp"]))
-    return f"{data} ({doc['config']['split']} split): {len(doc['images'])} image(s) at {spp} spp"
+    datasets = any((Path(d) / "manifest.json").is_file() for d in doc["config"]["data"])
+    split = f" ({doc['config']['split']} split)" if datasets else ""  # image folders have no split
+    return f"{data}{split}: {len(doc['images'])} image(s) at {spp} spp"
 
 
 def _crop_table(image: str, ent: dict[str, Any], relmse: dict[tuple[str, int, str], Any]) -> str:
