@@ -179,6 +179,9 @@ def test_results_md_block(report: tuple[Path, dict, Path]) -> None:
         assert re.search(rf"- {name}: floor \(>= 10x over noisy at 8 spp\): (met|missed) \(", text)
         assert re.search(rf"\| {name} \| 4 \| [0-9.e+-]+ \| [0-9.e+-]+ \| ", text)
     assert "Depth-of-field / motion-blur images only (1)" in text
+    # Bug caught (issue 18 section 2): ms/MP without the thread counts and precision behind it.
+    oidn = ", OIDN 1 thread(s)" if oidn_available() else ""
+    assert f"per megapixel, torch 1 thread(s){oidn}, models in float32." in text
 
 
 def test_cli_writes_report_and_replaces_it(data: Path, models: list[Path], tmp_path: Path,

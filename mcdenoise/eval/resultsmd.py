@@ -87,6 +87,17 @@ def _floors(doc: dict[str, Any]) -> list[str]:
     return out
 
 
+def _threads(doc: dict[str, Any]) -> str:
+    """What the ms/MP figures ran with: torch's and OIDN's threads, the models' precision."""
+    cfg = doc["config"]
+    out = f", torch {cfg.get('threads', doc['provenance'].get('torch_threads'))} thread(s)"
+    if cfg.get("oidn"):
+        oidn = cfg.get("oidn_threads")
+        out += f", OIDN {oidn} thread(s)" if oidn is not None else ", OIDN every core"
+    prec = sorted({m.get("precision", "float32") for m in doc["methods"] if m.get("kind") == "model"})
+    return out + (f", models in {' and '.join(prec)}" if prec else "")
+
+
 def render_block(doc: dict[str, Any]) -> str:
     """The Markdown of one evaluation: provenance, mean tables, model ratios, floors, DoF subset."""
     p = doc["provenance"]
@@ -99,7 +110,7 @@ def render_block(doc: dict[str, Any]) -> str:
         f"torch {p['torch']}" + (f", OIDN {p['oidn']}" if "oidn" in p else "") + ".",
         f"{len(doc['images'])} images (split `{cfg['split']}` of {', '.join(f'`{d}`' for d in cfg['data'])}), "
         f"inputs: the first k stored samples, k = {', '.join(map(str, cfg['spp']))}. "
-        "Means over images; ms/MP = wall time of the denoise call per megapixel.",
+        "Means over images; ms/MP = wall time of the denoise call per megapixel" + _threads(doc) + ".",
         "",
         *_means(doc, "all"),
     ]
