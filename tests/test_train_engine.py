@@ -186,6 +186,28 @@ def test_loss_png_with_and_without_matplotlib(tmp_path: Path, monkeypatch: pytes
     assert sorted(p.name for p in tmp_path.iterdir()) == ["fallback.png", "matplotlib.png", "metrics.csv"]
 
 
+def test_loss_png_axes_are_logarithmic(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Bug caught (issue 18): loss.png drew a loss swinging between 0.1 and 1000 on a linear axis,
+    where only the spikes could be read; the loss axis and the validation axis are both log."""
+    import matplotlib.figure
+
+    scales: list[list[str]] = []
+    save = matplotlib.figure.Figure.savefig
+
+    def spy(fig: matplotlib.figure.Figure, *a: object, **k: object) -> None:
+        scales.append([ax.get_yscale() for ax in fig.axes])
+        save(fig, *a, **k)
+
+    monkeypatch.setattr(matplotlib.figure.Figure, "savefig", spy)
+    log = MetricsLog(tmp_path, 0, tensorboard=False)
+    for s in range(1, 41):
+        log.write({"step": s, "phase": "image", "loss": 1000.0 if s % 7 == 0 else 0.1 * s, "lr": 1e-3,
+                   **({"val_relmse": 15.0 / s} if s % 10 == 0 else {})})
+    log.close()
+    assert plot_loss(tmp_path / "metrics.csv", tmp_path / "loss.png") is not None
+    assert scales == [["log", "log"]]
+
+
 def test_resume_refuses_changed_settings() -> None:
     """Catches a resume that silently continues with another learning rate or dataset."""
     a = {"train": TrainConfig(model="kpcn", data="d", lr=1e-3).to_json(), "manifest_sha256": "x", "model_config": {}}
