@@ -180,7 +180,7 @@ def test_output_depends_on_every_input_group(name: str) -> None:
 
 
 #: Colour buffers whose values are HDR (unbounded).
-_HDR = ("radiance", "diffuse", "specular")
+_HDR = ("radiance", "diffuse", "specular", "oidn")
 
 
 def _network_inputs(model: torch.nn.Module, batch: dict[str, torch.Tensor]) -> list[torch.Tensor]:

@@ -127,6 +127,9 @@ def _builtin() -> None:
     # Sequences (per pixel).
     c(Channel("motion", XY, "screen-space motion in pixels from the previous frame to this one", per_sample=False))
     c(Channel("position", XYZ, "world-space position of the first hit", per_sample=False))
+    # Derived on demand, never stored in an image folder (mcdenoise.data.oidn_input).
+    c(Channel("oidn", RGB, "Open Image Denoise 2.5.1 'high' output for the same input samples (colour, albedo, "
+                           "normal); computed from the other channels, cached beside a dataset", per_sample=False))
 
 
 _builtin()

@@ -35,6 +35,7 @@ import numpy as np
 from mcdenoise.color import luminance
 from mcdenoise.data.channels import base_name, is_variance_name
 from mcdenoise.data.format import ImageFolder, pixel_stats
+from mcdenoise.data.oidn_input import OIDN_CHANNEL, oidn_for, split_oidn
 
 __all__ = ["Crop", "CropSampler", "importance_map", "window_scores", "SAMPLINGS", "TARGETS"]
 
@@ -278,18 +279,28 @@ class CropSampler:
             if not 1 <= n <= m.spp:
                 raise ValueError(f"{im.path}: spp {n} outside 1..{m.spp}")
             idx = sorted(int(v) for v in rng.choice(m.spp, size=n, replace=False))
+        channels, want_oidn = split_oidn(self.channels)
+        if want_oidn:
+            # OIDN's output is cached per image and sample count for the first n samples (issue 20):
+            # the input must be exactly those, the held-out target the others.
+            n_in = len(idx) if idx is not None else m.spp
+            idx = list(range(n_in)) if idx is not None else None
+            held = list(range(n_in, m.spp)) if held is not None else None
         px = self._pixels(im)
         if self.kind == "samples":
             inputs = im.samples.read(self.channels, crop=box, samples=idx)
         elif idx is None:
-            inputs = px.read_noisy(self.channels, crop=box)
+            inputs = px.read_noisy(channels, crop=box)
         else:
-            bases = list(dict.fromkeys(base_name(c) for c in self.channels))
+            bases = list(dict.fromkeys(base_name(c) for c in channels))
             smp = im.samples.read(bases, crop=box, samples=idx)
             stats = {}
             for b in bases:
                 stats[b], stats[b + "_variance"] = pixel_stats(smp[b])
-            inputs = {c: stats[c] for c in self.channels}
+            inputs = {c: stats[c] for c in channels}
+        if want_oidn:
+            y, x, h, w = box
+            inputs[OIDN_CHANNEL] = np.ascontiguousarray(oidn_for(im, len(idx) if idx is not None else None)[:, y : y + h, x : x + w])
         if held is not None:
             tgt = im.samples.read(self.reference, crop=box, samples=held)
             ref = {k: v.mean(axis=0, dtype=np.float64).astype(np.float32) for k, v in tgt.items()}

@@ -108,9 +108,13 @@ def load_reference(case: SceneCase) -> np.ndarray:
 
 
 def _matches(folder: Path, case: SceneCase, spp: int, seed: int) -> bool:
+    from mcdenoise.data.image_folder import ImageFolder
+    from mcdenoise.errors import McDenoiseError
+
     try:
+        ImageFolder(folder)  # readable by this version (checksums, format)
         meta = json.loads((folder / "meta.json").read_text())
-    except (OSError, ValueError):
+    except (OSError, ValueError, McDenoiseError):
         return False
     extra = meta.get("extra", {})
     return (meta.get("width"), meta.get("height"), meta.get("spp"), meta.get("seed"), extra.get("max_depth"),

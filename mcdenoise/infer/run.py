@@ -120,6 +120,8 @@ def denoise_inputs(inputs: Inputs, model: Denoiser, *, device: torch.device | st
     spp = inputs.samples.spp if (kind == "samples" and inputs.samples is not None) else 1
     plan = tile_plan(model, inputs.height, inputs.width, spp=spp, device=device, tile=tile, max_memory=max_memory)
     names = [c for c in model.required_channels() if c != "scene_features"]
+    if "oidn" in names:
+        add_oidn(inputs)
 
     def read(t: Any) -> dict[str, torch.Tensor]:
         return inputs.batch(names, kind, t.window, t.core, device)
@@ -135,6 +137,19 @@ def denoise_inputs(inputs: Inputs, model: Denoiser, *, device: torch.device | st
     out = run_tiled(model, read, plan, progress=bar)
     inputs.warn_nonfinite()
     return out, RunInfo(plan, device, names, spp)
+
+
+def add_oidn(inputs: Inputs) -> None:
+    """Put OIDN 2.5.1's output for the whole image into ``inputs.pixels["oidn"]`` (a combiner's
+    candidate): run once on the full image, before tiling, as a user would run OIDN."""
+    from mcdenoise.eval.oidn import oidn_denoise
+
+    inputs.ensure_pixels()
+    if "oidn" in inputs.pixels:
+        return
+    px = inputs.pixels
+    albedo = px.get("albedo")
+    inputs.pixels["oidn"] = oidn_denoise(px["radiance"], albedo, px.get("normal") if albedo is not None else None)
 
 
 def describe_plan(plan: TilePlan) -> str:

@@ -156,7 +156,10 @@ class Inputs:
         """Channels available to models of ``input_kind`` ``kind`` (``"pixels"`` or ``"samples"``)."""
         if kind == "samples":
             return set(self.samples.channels) if self.samples is not None else set()
-        return set(self.pixel_names) if self.loader is not None else set(self.pixels)
+        have = set(self.pixel_names) if self.loader is not None else set(self.pixels)
+        if "radiance" in have:
+            have.add("oidn")  # derived on demand (mcdenoise.infer.run.add_oidn)
+        return have
 
     def batch(self, names: list[str], kind: str, window: Box, core: Box,
               device: torch.device | str = "cpu") -> dict[str, torch.Tensor]:

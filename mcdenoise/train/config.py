@@ -66,6 +66,8 @@ MODEL_DEFAULTS: dict[str, ModelDefaults] = {
     "layer_weighted": ModelDefaults("smape", 5e-3, 5e-3),
     "wskp": ModelDefaults("smape", 1e-3, 1e-3),
     "wskp_mr": ModelDefaults("smape", 1e-3, 1e-3),
+    # Not a paper's model: relMSE (unbiased against noisy targets, exposure-invariant).
+    "combine": ModelDefaults("relmse", 1e-3, 1e-3),
 }
 
 #: A model registered later without an entry above trains with these.

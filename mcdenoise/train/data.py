@@ -212,6 +212,8 @@ def training_batches(
     * ``spp (B,)`` int64: input samples per pixel of each row (for logging).
     """
     source = batch_source(data_dir, model, cfg, rank=rank, world_size=world_size)
+    if "oidn" in _input_channels(model):
+        precompute_oidn(Dataset(data_dir).images("train"), cfg)
     dev = torch.device(device)
     loader = torch.utils.data.DataLoader(
         source,
@@ -225,6 +227,27 @@ def training_batches(
     )
     for batch in loader:
         yield {k: v.to(dev, non_blocking=True) for k, v in batch.items()}
+
+
+def precompute_oidn(images: list, cfg: DataConfig) -> None:
+    """Fill the OIDN cache for every input sample count a crop can draw, here, before the loader
+    forks its workers: OIDN's TBB thread pool does not survive a fork (a worker computing OIDN
+    after the parent ran it hangs), and each (image, spp) is paid for once (issue 20)."""
+    import sys
+
+    from mcdenoise.data.oidn_input import oidn_for
+
+    todo = []
+    for im in images:
+        m = im.meta
+        if cfg.spp_range is not None:
+            counts = range(cfg.spp_range[0], min(cfg.spp_range[1], m.spp - (cfg.target == "noisy")) + 1)
+        else:
+            counts = [m.spp // 2] if cfg.target == "noisy" else [None]
+        todo += [(im, k) for k in counts]
+    print(f"OIDN inputs: {len(todo)} (image, spp) pairs, cached beside the dataset", file=sys.stderr)
+    for im, k in todo:
+        oidn_for(im, k)
 
 
 def validation_batches(

@@ -1,0 +1,72 @@
+"""The derived channel ``oidn``: Open Image Denoise 2.5.1's output for an image's first ``k`` samples.
+
+Computed from the same inputs a pixel model gets (the mean colour, albedo and normal of samples
+``0..k-1``; all stored samples = ``noisy.exr``) and cached once per image, ``k`` and OIDN version
+under the dataset's ``.cache/oidn-<version>/`` folder, so training a combiner (issue 20) pays for
+OIDN once per image and sample count. Cache files are written atomically; an unreadable one is
+computed again. Outside a dataset (an image folder on its own) nothing is written.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["OIDN_CHANNEL", "oidn_for", "split_oidn"]
+
+OIDN_CHANNEL = "oidn"
+#: How far up from an image folder a dataset's manifest.json is looked for.
+_MAX_UP = 3
+
+
+def _dataset_root(path: Path) -> Path | None:
+    p = path.resolve()
+    for _ in range(_MAX_UP):
+        p = p.parent
+        if (p / "manifest.json").is_file():
+            return p
+    return None
+
+
+def split_oidn(names: list[str]) -> tuple[list[str], bool]:
+    """``names`` without ``oidn``, and whether it was asked for."""
+    rest = [n for n in names if n != OIDN_CHANNEL]
+    return rest, len(rest) != len(names)
+
+
+def oidn_for(folder: object, k: int | None = None, *, quality: str = "high") -> np.ndarray:
+    """``(3, H, W)`` float32 OIDN output for the first ``k`` samples of image folder ``folder``."""
+    from mcdenoise.data.format import pixel_stats
+    from mcdenoise.eval.oidn import oidn_denoise, version
+
+    meta = folder.meta  # type: ignore[attr-defined]
+    k = meta.spp if k is None else int(k)
+    root = _dataset_root(Path(folder.path))  # type: ignore[attr-defined]
+    cache = None
+    if root is not None:
+        rel = Path(folder.path).resolve().relative_to(root)  # type: ignore[attr-defined]
+        cache = root / ".cache" / f"oidn-{version()}" / rel / f"{quality}_spp{k}.npy"
+        if cache.is_file():
+            try:
+                arr = np.load(cache, allow_pickle=False)
+                if arr.shape == (3, meta.height, meta.width) and arr.dtype == np.float32:
+                    return arr
+            except (OSError, ValueError):
+                pass  # damaged: computed again below
+    guides = [c for c in ("albedo", "normal") if c in meta.channels]
+    names = ["radiance", *guides]
+    if k == meta.spp:  # noisy.exr holds the means over every stored sample
+        px = folder.read_noisy(names)  # type: ignore[attr-defined]
+    else:  # the same means as mcdenoise.data.tensors.input_arrays computes
+        smp = folder.samples.read(names, samples=list(range(k)))  # type: ignore[attr-defined]
+        px = {n: pixel_stats(v)[0] for n, v in smp.items()}
+    out = oidn_denoise(px["radiance"], px.get("albedo"), px.get("normal") if "albedo" in px else None, quality=quality)
+    if cache is not None:
+        cache.parent.mkdir(parents=True, exist_ok=True)
+        tmp = cache.with_name(f".{cache.name}.{os.getpid()}.tmp")
+        with open(tmp, "wb") as f:
+            np.save(f, out)
+        tmp.replace(cache)
+    return out

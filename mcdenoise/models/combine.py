@@ -1,0 +1,147 @@
+"""A learned combiner of candidate estimates (issue 20; design in docs/models/combine.md).
+
+The candidates are images of the same pixels: OIDN 2.5.1's output (channel ``oidn``, computed by
+the data side from the same input) and the noisy mean (``radiance``). A small U-Net looks at
+both, the guides and how far OIDN strays from the noisy mean relative to its variance, and
+predicts per pixel one softmax over ``k x k`` taps of every candidate. The output is that weighted
+sum:
+
+    out(p) = sum_c sum_t w_{c,t}(p) * C_c(p + t),   w >= 0,  sum w = 1
+
+so a constant image stays constant and no output exceeds the largest candidate value in its
+``k x k`` neighbourhood: the combiner cannot invent radiance (Back et al. 2020 combine a noisy
+and a denoised image with a kernel network; Firmino et al. 2022 blend noisy and OIDN per pixel;
+Zheng et al. 2021 weight several denoisers per pixel). It starts as the identity on OIDN (centre
+tap bias), so fine-tuning moves away from OIDN only where the data says so.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+
+from mcdenoise.models.base import Denoiser, register_model
+from mcdenoise.models.blocks import UNet
+
+__all__ = ["CombineConfig", "Combine", "combine_features"]
+
+#: Floor of luminance denominators (radiance units; exposures vary, so small).
+EPS = 1e-4
+#: Logits are soft-clipped to (-LOGIT_BOUND, LOGIT_BOUND): weights can still differ by e^24, but
+#: the softmax never rounds a tap to an exact 0 (which would also hide the receptive field from
+#: the gradient probe of mcdenoise.infer.receptive) and never overflows.
+LOGIT_BOUND = 12.0
+
+
+@dataclass
+class CombineConfig:
+    """Sizes of the combiner.
+
+    Attributes:
+        width: channels of the weight U-Net's levels.
+        levels: U-Net levels (pooling steps).
+        kernel: taps per candidate per axis (odd).
+        start_logit: initial logit of OIDN's centre tap over every other tap (identity start).
+    """
+
+    width: int = 16
+    levels: int = 2
+    kernel: int = 3
+    start_logit: float = 7.0
+
+
+#: Candidate channels, in the order of the predicted weights.
+CANDIDATES = ("oidn", "radiance")
+#: Feature channels: log OIDN, log noisy, albedo, normal, log relative variance, log consistency.
+N_FEATURES = 3 + 3 + 3 + 3 + 1 + 1
+
+
+def _lum(x: torch.Tensor) -> torch.Tensor:
+    # Rec. 709 weights; one expression keeps this op self-contained for the float64 tests.
+    return 0.2126 * x[:, 0:1] + 0.7152 * x[:, 1:2] + 0.0722 * x[:, 2:3]
+
+
+def combine_features(batch: dict[str, torch.Tensor]) -> torch.Tensor:
+    """``(B, N_FEATURES, H, W)`` inputs of the weight network, exposure-normalised where it matters."""
+    oidn = batch["oidn"].clamp_min(0)
+    noisy = batch["radiance"].clamp_min(0)
+    var = _lum(batch["radiance_variance"].clamp_min(0))
+    lo = _lum(oidn)
+    # Noise relative to the signal, and how many standard deviations OIDN sits from the noisy mean:
+    # a large value says OIDN changed the pixel more than noise explains (detail lost, or a highlight).
+    rel_var = torch.log1p(var / (lo * lo + EPS))
+    consistency = torch.log1p((_lum(noisy) - lo) ** 2 / (var + EPS * EPS + 1e-3 * lo * lo))
+    return torch.cat([torch.log1p(oidn), torch.log1p(noisy), batch["albedo"].clamp(0, 1), batch["normal"],
+                      rel_var, consistency], dim=1)
+
+
+def apply_weights(candidates: list[torch.Tensor], weights: torch.Tensor, k: int) -> torch.Tensor:
+    """``sum_c sum_t weights[:, c*k*k + t] * candidates[c](p + t)`` -> (B, 3, H, W).
+
+    Reference implementation (unfold): ``weights`` (B, len(candidates)*k*k, H, W), normalised by the
+    caller; candidates are replicate-padded so border taps repeat the edge instead of adding zeros.
+    """
+    b, _, h, w = candidates[0].shape
+    r = k // 2
+    out = torch.zeros_like(candidates[0])
+    for c, img in enumerate(candidates):
+        padded = F.pad(img, (r, r, r, r), mode="replicate") if r else img
+        taps = F.unfold(padded, k).view(b, 3, k * k, h, w)
+        out = out + (taps * weights[:, c * k * k : (c + 1) * k * k].unsqueeze(1)).sum(dim=2)
+    return out
+
+
+class Combine(Denoiser):
+    """Per-pixel softmax kernels over OIDN's output and the noisy mean (see the module docstring)."""
+
+    input_kind = "pixels"
+
+    def __init__(self, config: CombineConfig) -> None:
+        super().__init__(config)
+        if config.kernel < 1 or config.kernel % 2 == 0:
+            raise ValueError(f"kernel must be odd and >= 1, got {config.kernel}")
+        k2 = config.kernel * config.kernel
+        w = config.width
+        self.net = UNet(N_FEATURES, len(CANDIDATES) * k2, [(w, w)] * config.levels, (w, w), [(w, w)] * config.levels)
+        if not 0 <= config.start_logit < LOGIT_BOUND:
+            raise ValueError(f"start_logit must be in [0, {LOGIT_BOUND}), got {config.start_logit}")
+        with torch.no_grad():  # (nearly) the identity on OIDN at the start
+            self.net.final.bias.zero_()
+            self.net.final.weight.mul_(0.1)
+            s = config.start_logit
+            self.net.final.bias[k2 // 2] = s / (1 - s / LOGIT_BOUND)  # the raw value that soft-clips to s
+
+    def required_channels(self) -> list[str]:
+        return ["oidn", "radiance", "radiance_variance", "albedo", "normal"]
+
+    def features(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
+        return combine_features(batch)
+
+    def weights(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
+        """(B, len(CANDIDATES) * k * k, H, W) softmax weights."""
+        raw = self.net(self.features(batch))
+        return torch.softmax(raw / (1 + raw.abs() / LOGIT_BOUND), dim=1)
+
+    def forward(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
+        cands = [batch[c] for c in CANDIDATES]
+        return apply_weights(cands, self.weights(batch), self.config.kernel)
+
+
+_PAPER = ("Back et al. 2020 (deep combiner), Zheng et al. 2021 (ensemble denoising), Firmino et al. 2022 "
+          "(progressive denoising): a per-pixel combination of OIDN and the noisy input")
+
+
+@register_model(
+    "combine",
+    config_cls=CombineConfig,
+    presets={
+        "small": lambda: CombineConfig(),
+        "paper": lambda: CombineConfig(width=32, levels=3, kernel=5),
+    },
+    paper=_PAPER,
+    description="U-Net -> per-pixel softmax kernels over OIDN 2.5.1's output and the noisy mean",
+)
+class CombineModel(Combine):
+    pass

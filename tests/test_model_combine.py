@@ -1,0 +1,118 @@
+"""The combiner (issue 20): its guarantees, the derived ``oidn`` channel and its cache."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import torch.nn.functional as F
+
+from mcdenoise.models import build_model, synthetic_batch
+from mcdenoise.models.combine import apply_weights
+
+pytest.importorskip("pyoidn")
+
+
+def _randomised(seed: int = 0) -> torch.nn.Module:
+    torch.manual_seed(seed)
+    model = build_model("combine", "small").eval()
+    with torch.no_grad():
+        for p in model.parameters():
+            p.normal_(0, 0.5)  # far from the identity start: weights spread over every tap
+    return model
+
+
+def test_output_stays_within_the_candidates_neighbourhood() -> None:
+    """Catches weights that are not a partition of unity (negative, or not summing to 1): the
+    output would leave the range of the candidate values it combines, i.e. invent radiance."""
+    model = _randomised()
+    batch = synthetic_batch(model, height=23, width=29, generator=torch.Generator().manual_seed(3))
+    batch["radiance"] = batch["radiance"] * torch.exp(torch.randn_like(batch["radiance"]) * 3)  # HDR, fireflies
+    with torch.no_grad():
+        out = model(batch)
+    both = torch.stack([batch["oidn"], batch["radiance"]])
+    hi = F.max_pool2d(F.pad(both.amax(0), (1, 1, 1, 1), mode="replicate"), 3, 1)
+    lo = -F.max_pool2d(F.pad(-both.amin(0), (1, 1, 1, 1), mode="replicate"), 3, 1)
+    assert (out <= hi * (1 + 1e-5) + 1e-6).all() and (out >= lo * (1 - 1e-5) - 1e-6).all()
+
+
+def test_constant_candidates_give_the_constant() -> None:
+    """Catches zero-padded taps at the border (a dark frame) or unnormalised weights."""
+    model = _randomised(1)
+    batch = synthetic_batch(model, height=17, width=19)
+    batch["oidn"] = torch.full_like(batch["oidn"], 0.7)
+    batch["radiance"] = torch.full_like(batch["radiance"], 0.7)
+    with torch.no_grad():
+        out = model(batch)
+    torch.testing.assert_close(out, torch.full_like(out, 0.7), rtol=1e-5, atol=1e-6)
+
+
+def test_a_fresh_combiner_returns_oidn() -> None:
+    """Catches an initialisation that starts training from a blur of OIDN and the noise (the
+    combiner must start as OIDN and move away only where the data says so)."""
+    torch.manual_seed(0)
+    model = build_model("combine", "small").eval()
+    batch = synthetic_batch(model, height=16, width=16)
+    with torch.no_grad():
+        out = model(batch)
+    assert float(((out - batch["oidn"]).abs() / (batch["oidn"].abs() + 1e-2)).mean()) < 0.1
+
+
+def test_apply_weights_matches_a_loop_in_float64() -> None:
+    """Catches a tap order that does not match the weights (unfold order vs (dy, dx))."""
+    g = torch.Generator().manual_seed(0)
+    c = [torch.rand(1, 3, 6, 7, generator=g, dtype=torch.float64) for _ in range(2)]
+    w = torch.softmax(torch.randn(1, 18, 6, 7, generator=g, dtype=torch.float64), dim=1)
+    out = apply_weights(c, w, 3)
+    ref = torch.zeros_like(out)
+    for ci, img in enumerate(c):
+        p = F.pad(img, (1, 1, 1, 1), mode="replicate")
+        for t in range(9):
+            dy, dx = divmod(t, 3)
+            ref += w[:, ci * 9 + t : ci * 9 + t + 1] * p[..., dy : dy + 6, dx : dx + 7]
+    torch.testing.assert_close(out, ref, rtol=1e-12, atol=1e-12)
+    torch.autograd.gradcheck(lambda a, b, ww: apply_weights([a, b], ww, 3),
+                             (c[0].requires_grad_(), c[1].requires_grad_(), w.clone().requires_grad_()))
+
+
+def test_oidn_channel_is_cached_beside_the_dataset_and_matches_oidn(tmp_path: Path) -> None:
+    """Catches a cached OIDN image for the wrong samples (the input uses the first k), a cache
+    written outside the dataset's .cache, or one computed again on every read."""
+    from train_tiny_data import make_tiny_dataset
+
+    from mcdenoise.data.dataset import Dataset
+    from mcdenoise.data.oidn_input import oidn_for
+    from mcdenoise.data.tensors import input_arrays
+    from mcdenoise.eval.oidn import oidn_denoise, version
+
+    root = make_tiny_dataset(tmp_path / "d")
+    im = Dataset(root).images("train")[0]
+    a = oidn_for(im, 3)
+    px = input_arrays(im, ["radiance", "albedo", "normal"], "pixels", spp=3)
+    np.testing.assert_array_equal(a, oidn_denoise(px["radiance"], px["albedo"], px["normal"]))
+    [cached] = list((root / ".cache" / f"oidn-{version()}").rglob("high_spp3.npy"))
+    stamp = cached.stat().st_mtime_ns
+    np.testing.assert_array_equal(oidn_for(im, 3), a)
+    assert cached.stat().st_mtime_ns == stamp
+    assert not np.array_equal(oidn_for(im, 2), a)
+
+
+def test_crops_for_the_combiner_use_the_first_samples(tmp_path: Path) -> None:
+    """Catches random sample subsets for the input while OIDN's cached image used the first k:
+    the two candidates would disagree on the noise, and the target would overlap the input."""
+    from train_tiny_data import make_tiny_dataset
+
+    from mcdenoise.data.dataset import Dataset
+    from mcdenoise.data.sampler import CropSampler
+
+    root = make_tiny_dataset(tmp_path / "d")
+    model = build_model("combine", "small")
+    s = CropSampler(Dataset(root).images("train"), crop=8, channels=model.required_channels(), kind="pixels",
+                    spp_range=(2, 5), target="noisy", seed=0)
+    for i in range(6):
+        c = s[i]
+        n = len(c.samples)
+        assert c.samples == list(range(n)) and c.target_samples == list(range(n, 8))
+        assert c.inputs["oidn"].shape == (3, 8, 8)
