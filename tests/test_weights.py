@@ -128,6 +128,21 @@ def test_card_commands_parse_back_to_the_settings_that_ran(run: Path, tmp_path: 
     assert (ns.count, ns.seed, ns.spp, ns.ref_spp, ns.size, ns.views, ns.split) == (7, 3, 16, 0, "64x48", 2, "0.8,0.2,0")
 
 
+def test_every_changed_setting_reaches_the_card_command(run: Path, tmp_path: Path) -> None:
+    """Bug caught (issue 18): settings without a `train` flag (min_lr_fraction, model_overrides)
+    silently dropped from a card's command, and a rich-world dataset stated as a classic one."""
+    doc = json.loads((run / "config.json").read_text())
+    doc["train"].update(min_lr_fraction=0.2, model_overrides={"channels": 6}, init="kpcn", val_data="data/v", warmup=0.1)
+    args = _parse(train_cli, train_command(doc, "runs/x"))
+    a = train_cli.config_from_args(args).to_json()
+    for k in ("min_lr_fraction", "model_overrides", "init", "val_data", "warmup"):
+        assert a[k] == doc["train"][k], k
+    cfg = DatasetConfig(count=2, world="rich", max_depth=8)
+    (tmp_path / "dataset.json").write_text(json.dumps(cfg.to_json()))
+    ns = _parse(dataset_cli, dataset_command(tmp_path))
+    assert (ns.world, ns.max_depth) == ("rich", 8)
+
+
 def test_non_finite_weights_are_refused(tmp_path: Path, capfd: pytest.CaptureFixture) -> None:
     """Catches issue 22 item 5: NaN weights denoised to an all-NaN image with rc 0; loading them must
     be a one-line error naming the file (Python API and CLI)."""

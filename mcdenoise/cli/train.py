@@ -18,7 +18,7 @@ import sys
 from pathlib import Path
 
 #: CLI flag (dest) -> TrainConfig field, for the flags that map one to one.
-_FIELDS = ("model", "preset", "init", "data", "val_data", "steps", "batch", "crop", "lr", "loss", "device", "seed", "val_every",
+_FIELDS = ("model", "preset", "init", "data", "val_data", "min_lr_fraction", "steps", "batch", "crop", "lr", "loss", "device", "seed", "val_every",
            "checkpoint_every", "keep_every", "workers", "threads", "target", "sampling", "warmup", "schedule", "clip_grad",
            "branch_fraction", "amp", "val_images")
 
@@ -53,11 +53,26 @@ def add_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--warmup", type=float, help="fraction of steps with linear warm-up (default 0.02)")
     p.add_argument("--schedule", choices=("cosine", "step", "constant"), help="decay after warm-up (default cosine)")
     p.add_argument("--clip-grad", type=float, help="clip the gradient norm (default 1.0; 0 = off)")
+    p.add_argument("--min-lr-fraction", type=float, help="final learning rate of the cosine schedule, a fraction of the peak (default 0.05)")
+    p.add_argument("--model-overrides", type=_json_object, metavar="JSON",
+                   help='fields of the preset\'s model configuration to replace, e.g. \'{"layers": 4}\' (ablations)')
     p.add_argument("--branch-fraction", type=float, help="KPCN/DPCN: fraction of steps on per-branch losses (default 0.8)")
     p.add_argument("--amp", choices=("none", "bf16"), help="bf16 autocast on CUDA (default none)")
     p.add_argument("--resume", action="store_true", help="continue the run in --out from its newest checkpoint")
     p.add_argument("--force", action="store_true", help="replace an existing run in --out")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def _json_object(text: str) -> dict:
+    import json
+
+    try:
+        v = json.loads(text)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(f"not JSON ({e})") from None
+    if not isinstance(v, dict):
+        raise argparse.ArgumentTypeError("expected a JSON object, e.g. '{\"layers\": 4}'")
+    return v
 
 
 def config_from_args(args: argparse.Namespace):  # -> TrainConfig
@@ -66,6 +81,8 @@ def config_from_args(args: argparse.Namespace):  # -> TrainConfig
     from mcdenoise.io.run_folder import CONFIG_FILE
 
     given = {f: getattr(args, f) for f in _FIELDS if getattr(args, f) is not None}
+    if args.model_overrides is not None:
+        given["model_overrides"] = args.model_overrides
     if args.spp is not None:
         given["spp_range"] = tuple(args.spp)
     if args.no_augment:

@@ -49,6 +49,8 @@ def dataset_command(data_dir: str | Path) -> str:
         args += ["--kind", d["kind"]]
     if d.get("max_depth", 6) != 6:
         args += ["--max-depth", str(d["max_depth"])]
+    if d.get("world", "classic") != "classic":
+        args += ["--world", d["world"]]
     lo, hi = d.get("objects", [10, 50])
     if [lo, hi] != [10, 50]:
         args += ["--objects", f"{lo}-{hi}"]
@@ -57,10 +59,17 @@ def dataset_command(data_dir: str | Path) -> str:
 
 
 #: TrainConfig field -> CLI flag, for the fields a command must spell out when not at the default.
-_FLAGS = {"preset": "--preset", "steps": "--steps", "batch": "--batch", "crop": "--crop", "lr": "--lr", "loss": "--loss",
-          "target": "--target", "sampling": "--sampling", "seed": "--seed", "warmup": "--warmup",
-          "schedule": "--schedule", "clip_grad": "--clip-grad", "branch_fraction": "--branch-fraction", "amp": "--amp",
-          "val_every": "--val-every", "val_images": "--val-images", "workers": "--workers", "threads": "--threads"}
+def _flags() -> dict[str, str]:
+    """TrainConfig field -> its ``mcdenoise train`` flag, read from the command's own parser (a
+    hand-kept table went stale: fields without a flag made cards state a wrong command)."""
+    import argparse
+
+    from mcdenoise.cli.train import add_parser
+
+    p = argparse.ArgumentParser()
+    add_parser(p)
+    skip = {"model", "data", "out", "spp", "resume", "force", "no_progress", "no_augment", "device"}
+    return {a.dest: a.option_strings[-1] for a in p._actions if a.option_strings and a.dest not in skip}
 
 
 def train_command(config_doc: dict[str, Any], out: str | Path) -> str:
@@ -69,10 +78,18 @@ def train_command(config_doc: dict[str, Any], out: str | Path) -> str:
 
     t = config_doc["train"]
     default = TrainConfig().to_json()
+    flags = _flags()
     args = ["mcdenoise", "train", "--model", t["model"], "--data", t["data"], "--out", str(out)]
-    for field, flag in _FLAGS.items():
-        if t.get(field) != default.get(field) and t.get(field) is not None:
-            args += [flag, f"{t[field]:g}" if isinstance(t[field], float) else str(t[field])]
+    for field, value in t.items():
+        if field not in flags or value is None or value == default.get(field):
+            continue
+        if isinstance(value, dict):
+            value = json.dumps(value, sort_keys=True)
+        args += [flags[field], f"{value:g}" if isinstance(value, float) else str(value)]
+    unstated = sorted(f for f, v in t.items() if f not in flags and v != default.get(f)
+                      and f not in ("model", "data", "spp_range", "augment", "progress", "device"))
+    if unstated:
+        raise WeightsError(f"the run's settings {unstated} have no `mcdenoise train` flag: its command cannot be stated")
     if t.get("spp_range") and t.get("spp_range") != default.get("spp_range"):
         args += ["--spp", *map(str, t["spp_range"])]
     if not t.get("augment", True):
