@@ -104,13 +104,15 @@ def test_card_relmse_forms():
 
 @pytest.fixture
 def fake_shipped(tmp_path, monkeypatch):
-    """Shipped weights stood in by random ones: wskp (relMSE 0.2) and wskp_mr (relMSE 0.1)."""
+    """Shipped weights stood in by random ones: wskp (relMSE 0.2) and wskp_mr (relMSE 0.1), on the
+    procedural test split and on the third-party validation scenes, where OIDN scores 0.15."""
     entries = []
     for name, rel in (("wskp", 0.2), ("wskp_mr", 0.1)):
         torch.manual_seed(0)
         path = tmp_path / f"{name}-small.safetensors"
         save_file(build_model(name, "small").state_dict(), str(path), metadata={"model": name, "preset": "small"})
-        card = {"test": {"relmse": {"8": rel}}, "inputs": ["radiance", "albedo", "normal", "depth"]}
+        card = {"test": {"relmse": {"8": rel}}, "inputs": ["radiance", "albedo", "normal", "depth"],
+                "validation": {"spp": {"8": {"model": {"relmse": rel}, "oidn-high": {"relmse": 0.15}}}}}
         path.with_suffix(".json").write_text(json.dumps(card))
         entries.append(weights_mod.ShippedWeights(name, "small", path, card))
     monkeypatch.setattr(weights_mod, "shipped", lambda: list(entries))
@@ -118,15 +120,26 @@ def fake_shipped(tmp_path, monkeypatch):
 
 
 def test_without_model_the_lowest_relmse_wins(fake_shipped, caplog):
-    """Catches model=None picking by name or order instead of the cards' test relMSE."""
+    """Catches model=None picking by name or order instead of the cards' validation relMSE."""
     b = _buffers()
     with caplog.at_level("INFO", logger="mcdenoise.denoise"):
         mcdenoise.denoise(b["color"], b["albedo"], b["normal"], b["depth"], device="cpu")
-    assert "wskp_mr" in caplog.text and "relMSE" in caplog.text
+    assert "wskp_mr" in caplog.text and "validation relMSE" in caplog.text
 
 
-def test_without_model_missing_inputs_are_named(fake_shipped):
-    """Catches a refusal that does not say which channel the shipped models need."""
+def test_without_model_missing_inputs_fall_back_to_oidn(fake_shipped, caplog):
+    """Catches a refusal where OIDN could denoise: without depth no shipped model runs, OIDN does."""
+    b = _buffers()
+    with caplog.at_level("INFO", logger="mcdenoise.denoise"):
+        out = mcdenoise.denoise(b["color"], b["albedo"], b["normal"])
+    assert out.shape == b["color"].shape and "oidn" in caplog.text
+
+
+def test_without_model_or_oidn_missing_inputs_are_named(fake_shipped, monkeypatch):
+    """Catches a refusal that does not say which channel the shipped models need (OIDN absent)."""
+    import mcdenoise.eval.oidn as oidn_mod
+
+    monkeypatch.setattr(oidn_mod, "oidn_available", lambda: False)
     b = _buffers()
     with pytest.raises(InputError, match="depth"):
         mcdenoise.denoise(b["color"], b["albedo"], b["normal"])

@@ -183,6 +183,14 @@ def build_methods(models: Sequence[str | os.PathLike], oidn: Sequence[str], clas
     except ValueError as e:
         raise EvalError(f"--precision: {e}") from None
     for spec in models:
+        if spec == "oidn":  # the name every command accepts for OIDN 2.5.1 high
+            if "oidn-high" not in taken:
+                from mcdenoise.eval.oidn import _pyoidn
+
+                _pyoidn()
+                methods.append(OIDNMethod("high", oidn_threads))
+                taken.add("oidn-high")
+            continue
         for prec in resolved:
             net, info = load_denoiser(spec, device=device)
             suffix = "+bf16" if prec == "bfloat16" else ""

@@ -1,10 +1,12 @@
-"""Which model denoises an input: the user's (``--model NAME|WEIGHTS``) or the best shipped one.
+"""Which model denoises an input: the user's (``--model NAME|WEIGHTS|oidn``) or the best one we have.
 
-Without a model named, every shipped model (:func:`mcdenoise.models.weights.shipped`) whose inputs
-the image has is a candidate. Candidates with a test relMSE in their model card are ranked by it
-(lowest first; :func:`card_relmse` says which number is read) ahead of those without, which keep
-the fixed order of :data:`FALLBACK_ORDER`: per-sample models first (they see the most
-information), then the per-pixel models from the richest input to the leanest.
+Without a model named (issue 20, "an automatic pick that is honest"): every shipped model
+(:func:`mcdenoise.models.weights.shipped`) whose inputs the image has is a candidate, and so is
+Open Image Denoise 2.5.1 ``high`` itself. They are ranked by the *third-party validation* results
+in the model cards (``card["validation"]``: relMSE at :data:`RANK_SPP` spp on
+``../shared/valscenes``, with OIDN's on the same images), never by the procedural test split. A
+model is picked only when its card shows it better than OIDN there; otherwise OIDN is. Only when
+OIDN is not installed do the old rules apply: test relMSE, then :data:`FALLBACK_ORDER`.
 """
 
 from __future__ import annotations
@@ -16,7 +18,7 @@ import torch
 from mcdenoise.infer.sources import InputError, Inputs
 from mcdenoise.models.registry import MODELS, Denoiser, _load_all
 
-__all__ = ["FALLBACK_ORDER", "card_relmse", "missing_channels", "choose_model"]
+__all__ = ["FALLBACK_ORDER", "card_relmse", "card_validation", "missing_channels", "choose_model"]
 
 #: Order among shipped models whose card gives no test relMSE (unknown names go last, by name).
 FALLBACK_ORDER: tuple[str, ...] = (
@@ -66,6 +68,18 @@ def card_relmse(card: dict[str, Any]) -> float | None:
     return None
 
 
+def card_validation(card: dict[str, Any], spp: int = RANK_SPP) -> tuple[float, float] | None:
+    """``(model relMSE, OIDN high relMSE)`` on the third-party validation scenes at ``spp``, from
+    ``card["validation"]["spp"][str(spp)]`` (written by ``mcdenoise.models.ship --valscenes``), or None."""
+    v = card.get("validation") if isinstance(card, dict) else None
+    row = ((v or {}).get("spp") or {}).get(str(spp)) if isinstance(v, dict) else None
+    if not isinstance(row, dict):
+        return None
+    mine = _as_float((row.get("model") or {}).get("relmse"))
+    oidn = _as_float((row.get("oidn-high") or {}).get("relmse"))
+    return (mine, oidn) if mine is not None and oidn is not None else None
+
+
 def missing_channels(required: list[str], kind: str, inputs: Inputs) -> list[str]:
     """Channels of ``required`` (a model's ``required_channels()``) that ``inputs`` lacks.
 
@@ -81,6 +95,13 @@ def missing_channels(required: list[str], kind: str, inputs: Inputs) -> list[str
 
 def _refuse(label: str, name: str, missing: list[str]) -> InputError:
     return InputError(f"model {name!r} needs channels that {label} lacks: {', '.join(missing)}")
+
+
+def _oidn_info(why: str) -> dict[str, Any]:
+    from mcdenoise.eval.oidn import version
+
+    return {"name": "oidn", "preset": "high", "source": "library", "weights": f"Open Image Denoise {version()}",
+            "label": "oidn", "why": why, "channels": ["radiance", "albedo", "normal"], "precision": "float32"}
 
 
 def _fallback_rank(name: str) -> tuple[int, str]:
@@ -99,7 +120,14 @@ def choose_model(inputs: Inputs, spec: str | None = None, *, device: torch.devic
     """
     from mcdenoise.models.weights import load_denoiser, model_from_config, shipped
 
+    from mcdenoise.eval.oidn import oidn_available
+    from mcdenoise.infer.oidn_method import OIDN_NAME, OIDNMethod
+
     _load_all()
+    if spec == OIDN_NAME:
+        if not oidn_available():
+            raise InputError("--model oidn: Open Image Denoise is not installed (pip install 'pyoidn==2.5.1.0')")
+        return OIDNMethod(), _oidn_info("as asked")
     if spec is not None:
         model, info = load_denoiser(spec, preset=preset, device=device)
         missing = missing_channels(model.required_channels(), model.input_kind, inputs)
@@ -120,6 +148,8 @@ def choose_model(inputs: Inputs, spec: str | None = None, *, device: torch.devic
             score = card_relmse(sw.card)
             rank = (0, score, "") if score is not None else (1, 0.0, "")
             candidates.append((rank, _fallback_rank(sw.name), sw, score))
+        if not candidates and oidn_available() and "radiance" in inputs.channels("pixels"):
+            return OIDNMethod(), _oidn_info("no shipped model has the inputs it needs here")
         if not candidates:
             if not refused:
                 raise InputError("no shipped models are installed; pass --model NAME|WEIGHTS (a .safetensors file or a run folder)")
@@ -127,11 +157,28 @@ def choose_model(inputs: Inputs, spec: str | None = None, *, device: torch.devic
             name, missing = min(refused, key=lambda r: (len(r[1]), _fallback_rank(r[0])))
             raise InputError(f"no shipped model can denoise {inputs.label}: the closest, {name!r}, needs "
                              f"{', '.join(missing)}")
-        candidates.sort(key=lambda c: (c[0][0], c[0][1], c[1]))
-        _, _, best, score = candidates[0]
-        model, info = load_denoiser(best.name, preset=best.preset, device=device)
-        info["why"] = (f"lowest test relMSE ({score:.4g}) among shipped models whose inputs are present"
-                       if score is not None else "first in the fixed order among shipped models whose inputs are present")
+        if oidn_available():
+            beat = []
+            for c in candidates:
+                v = card_validation(c[2].card)
+                if v is not None and v[0] < v[1]:
+                    beat.append((v[0], c[1], c[2], v))
+            if not beat:
+                return OIDNMethod(), _oidn_info(
+                    f"no shipped model for these inputs beats OIDN 2.5.1 high on the third-party validation scenes "
+                    f"(relMSE at {RANK_SPP} spp in the model cards)")
+            beat.sort(key=lambda b: (b[0], b[1]))
+            _, _, best, (mine, oidn) = beat[0]
+            model, info = load_denoiser(best.name, preset=best.preset, device=device)
+            info["why"] = (f"lowest third-party validation relMSE at {RANK_SPP} spp ({mine:.4g}, OIDN high {oidn:.4g}) "
+                           "among the models whose inputs are present")
+        else:
+            candidates.sort(key=lambda c: (c[0][0], c[0][1], c[1]))
+            _, _, best, score = candidates[0]
+            model, info = load_denoiser(best.name, preset=best.preset, device=device)
+            info["why"] = (f"OIDN not installed; lowest test relMSE ({score:.4g}) among shipped models whose inputs are present"
+                           if score is not None else
+                           "OIDN not installed; first in the fixed order among shipped models whose inputs are present")
     info["channels"] = [c for c in model.required_channels() if c != "scene_features"]
     from mcdenoise.models.inference import prepare_inference, resolve_precision
 

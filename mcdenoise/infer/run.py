@@ -115,6 +115,15 @@ def denoise_inputs(inputs: Inputs, model: Denoiser, *, device: torch.device | st
     ``progress``: a tqdm bar over tiles on stderr (None: only when stderr is a terminal).
     """
     device = torch.device(device) if device is not None else default_device()
+    from mcdenoise.infer.oidn_method import OIDNMethod
+
+    if isinstance(model, OIDNMethod):  # OIDN tiles by itself: the whole image, once
+        add_oidn(inputs)
+        inputs.warn_nonfinite()
+        used = ["radiance"] + [c for c in ("albedo", "normal") if c in inputs.pixels]
+        if "normal" in used and "albedo" not in used:
+            used.remove("normal")
+        return inputs.pixels["oidn"], RunInfo(plan_tiles(inputs.height, inputs.width, receptive=0), device, used, 1)
     model = model.to(device).eval()
     kind = model.input_kind
     spp = inputs.samples.spp if (kind == "samples" and inputs.samples is not None) else 1

@@ -50,12 +50,17 @@ class CombineConfig:
     levels: int = 2
     kernel: int = 3
     start_logit: float = 7.0
+    use_variance: bool = False
+    """Read the noisy pixel's variance (image folders with samples have it; Blender, pbrt and
+    OIDN-style files do not). Off: the pixel-only combiner, usable on every input."""
 
 
 #: Candidate channels, in the order of the predicted weights.
 CANDIDATES = ("oidn", "radiance")
-#: Feature channels: log OIDN, log noisy, albedo, normal, log relative variance, log consistency.
-N_FEATURES = 3 + 3 + 3 + 3 + 1 + 1
+#: Feature channels: log OIDN, log noisy, albedo, normal, log relative deviation of the noisy
+#: mean from OIDN; with the variance: log relative variance and the deviation in standard deviations.
+N_FEATURES = 3 + 3 + 3 + 3 + 1
+N_VARIANCE_FEATURES = 2
 
 
 def _lum(x: torch.Tensor) -> torch.Tensor:
@@ -63,18 +68,21 @@ def _lum(x: torch.Tensor) -> torch.Tensor:
     return 0.2126 * x[:, 0:1] + 0.7152 * x[:, 1:2] + 0.0722 * x[:, 2:3]
 
 
-def combine_features(batch: dict[str, torch.Tensor]) -> torch.Tensor:
-    """``(B, N_FEATURES, H, W)`` inputs of the weight network, exposure-normalised where it matters."""
+def combine_features(batch: dict[str, torch.Tensor], use_variance: bool = False) -> torch.Tensor:
+    """``(B, N_FEATURES [+ N_VARIANCE_FEATURES], H, W)`` inputs of the weight network,
+    exposure-normalised where it matters (log colour; ratios, not differences)."""
     oidn = batch["oidn"].clamp_min(0)
     noisy = batch["radiance"].clamp_min(0)
-    var = _lum(batch["radiance_variance"].clamp_min(0))
-    lo = _lum(oidn)
-    # Noise relative to the signal, and how many standard deviations OIDN sits from the noisy mean:
-    # a large value says OIDN changed the pixel more than noise explains (detail lost, or a highlight).
-    rel_var = torch.log1p(var / (lo * lo + EPS))
-    consistency = torch.log1p((_lum(noisy) - lo) ** 2 / (var + EPS * EPS + 1e-3 * lo * lo))
-    return torch.cat([torch.log1p(oidn), torch.log1p(noisy), batch["albedo"].clamp(0, 1), batch["normal"],
-                      rel_var, consistency], dim=1)
+    lo, ln = _lum(oidn), _lum(noisy)
+    # How far the noisy mean is from OIDN, relative to OIDN: the network judges from the neighbourhood
+    # whether that is noise (OIDN right) or detail/highlight OIDN removed (noisy right).
+    deviation = torch.log1p((ln - lo).abs() / (lo + EPS))
+    feats = [torch.log1p(oidn), torch.log1p(noisy), batch["albedo"].clamp(0, 1), batch["normal"], deviation]
+    if use_variance:
+        var = _lum(batch["radiance_variance"].clamp_min(0))
+        # Noise relative to the signal, and the deviation in standard deviations of the noisy mean.
+        feats += [torch.log1p(var / (lo * lo + EPS)), torch.log1p((ln - lo) ** 2 / (var + EPS * EPS + 1e-3 * lo * lo))]
+    return torch.cat(feats, dim=1)
 
 
 def apply_weights(candidates: list[torch.Tensor], weights: torch.Tensor, k: int) -> torch.Tensor:
@@ -104,7 +112,8 @@ class Combine(Denoiser):
             raise ValueError(f"kernel must be odd and >= 1, got {config.kernel}")
         k2 = config.kernel * config.kernel
         w = config.width
-        self.net = UNet(N_FEATURES, len(CANDIDATES) * k2, [(w, w)] * config.levels, (w, w), [(w, w)] * config.levels)
+        n_in = N_FEATURES + (N_VARIANCE_FEATURES if config.use_variance else 0)
+        self.net = UNet(n_in, len(CANDIDATES) * k2, [(w, w)] * config.levels, (w, w), [(w, w)] * config.levels)
         if not 0 <= config.start_logit < LOGIT_BOUND:
             raise ValueError(f"start_logit must be in [0, {LOGIT_BOUND}), got {config.start_logit}")
         with torch.no_grad():  # (nearly) the identity on OIDN at the start
@@ -114,10 +123,10 @@ class Combine(Denoiser):
             self.net.final.bias[k2 // 2] = s / (1 - s / LOGIT_BOUND)  # the raw value that soft-clips to s
 
     def required_channels(self) -> list[str]:
-        return ["oidn", "radiance", "radiance_variance", "albedo", "normal"]
+        return ["oidn", "radiance"] + (["radiance_variance"] if self.config.use_variance else []) + ["albedo", "normal"]
 
     def features(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
-        return combine_features(batch)
+        return combine_features(batch, self.config.use_variance)
 
     def weights(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
         """(B, len(CANDIDATES) * k * k, H, W) softmax weights."""
@@ -138,7 +147,8 @@ _PAPER = ("Back et al. 2020 (deep combiner), Zheng et al. 2021 (ensemble denoisi
     config_cls=CombineConfig,
     presets={
         "small": lambda: CombineConfig(),
-        "paper": lambda: CombineConfig(width=32, levels=3, kernel=5),
+        "small_var": lambda: CombineConfig(use_variance=True),
+        "paper": lambda: CombineConfig(width=32, levels=3, kernel=5, use_variance=True),
     },
     paper=_PAPER,
     description="U-Net -> per-pixel softmax kernels over OIDN 2.5.1's output and the noisy mean",

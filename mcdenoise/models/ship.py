@@ -122,6 +122,42 @@ def _test_metrics(results: dict[str, Any], weights: str) -> dict[str, Any]:
     return out
 
 
+def validation_metrics(results: dict[str, Any], weights: str) -> dict[str, Any]:
+    """The card's ``validation`` block from an ``mcdenoise eval --scenes`` results.json: mean
+    metrics per spp of this model, the noisy input and OIDN (``spp``), and relMSE per scene
+    (``scenes``), which :mod:`mcdenoise.infer.choose` ranks models by (issue 20)."""
+    t = _test_metrics(results, weights)
+    per_spp = (t.get("subsets") or {}).get("all") or next(iter((t.get("subsets") or {}).values()), {})
+    target = Path(weights).resolve()
+    mine = {m["name"] for m in results.get("methods", []) if m.get("kind") == "model" and m.get("weights")
+            and Path(m["weights"]).resolve() == target}
+    scenes: dict[str, dict[str, dict[str, float]]] = {}
+    for r in results.get("rows", []):
+        name = "model" if r["method"] in mine else r["method"] if r["method"] in ("noisy", "oidn-high", "oidn-fast") else None
+        if name is not None and isinstance(r.get("relmse"), (int, float)):
+            scene = Path(str(r["image"])).name.split("_")[0]
+            scenes.setdefault(scene, {}).setdefault(str(r["spp"]), {})[name] = float(r["relmse"])
+    return {"data": t.get("data"), "command": t.get("command"), "oidn_version": t.get("oidn_version"),
+            "images": t.get("images"), "spp": per_spp, "scenes": scenes}
+
+
+def annotate(stem: str, valscenes_json: str | Path, *, out_dir: Path = SHIPPED_DIR) -> Path:
+    """Add (or replace) the ``validation`` block of the shipped card ``<stem>.json``; the weights
+    are not touched (their SHA-256 must still match the card)."""
+    c_path, w_path = out_dir / f"{stem}.json", out_dir / f"{stem}.safetensors"
+    try:
+        card = json.loads(c_path.read_text())
+        results = json.loads(Path(valscenes_json).read_text())
+    except (OSError, ValueError) as e:
+        raise WeightsError(f"annotate {stem}: cannot read the card or the results ({e})") from None
+    if card.get("weights_sha256") != hashlib.sha256(w_path.read_bytes()).hexdigest():
+        raise WeightsError(f"{w_path}: does not match its card's weights_sha256")
+    card["validation"] = validation_metrics(results, str(w_path))
+    with atomic_file(c_path) as tmp:
+        tmp.write_text(json.dumps(card, indent=1) + "\n")
+    return c_path
+
+
 def model_card(run_dir: Path, model: Any, info: dict[str, Any], results: dict[str, Any] | None) -> dict[str, Any]:
     from mcdenoise.train.config import read_config
 
@@ -255,7 +291,9 @@ def ship(run_dir: str | Path, *, results_json: str | Path | None = None, out_dir
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m mcdenoise.models.ship", description=__doc__.strip().splitlines()[0])
-    p.add_argument("run", type=Path, help="finished run folder of `mcdenoise train`")
+    p.add_argument("run", type=Path, nargs="?", help="finished run folder of `mcdenoise train`")
+    p.add_argument("--annotate", metavar="NAME-PRESET", help="only add --valscenes results to this shipped card")
+    p.add_argument("--valscenes", type=Path, help="results.json of `mcdenoise eval --scenes` that includes these weights")
     p.add_argument("--eval", type=Path, help="results.json of `mcdenoise eval` that includes this run")
     p.add_argument("--force", action="store_true", help="replace shipped weights of the same name and preset")
     p.add_argument("--docs", type=Path, default=Path("docs/TRAINING.md"),
@@ -263,7 +301,16 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--cpu-seconds", type=float, help="CPU seconds the run took, when its result.json lacks them")
     a = p.parse_args(argv)
     try:
+        if a.annotate:
+            if a.valscenes is None:
+                raise WeightsError("--annotate needs --valscenes REPORT/results.json")
+            print(f"wrote {annotate(a.annotate, a.valscenes)}")
+            return 0
+        if a.run is None:
+            raise WeightsError("give a run folder (or --annotate NAME-PRESET --valscenes ...)")
         w, c = ship(a.run, results_json=a.eval, force=a.force, docs=a.docs, cpu_seconds=a.cpu_seconds)
+        if a.valscenes is not None:
+            annotate(w.stem, a.valscenes, out_dir=w.parent)
     except McDenoiseError as e:
         print(f"ship: error: {e}", file=sys.stderr)
         return 1

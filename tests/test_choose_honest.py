@@ -1,0 +1,72 @@
+"""The automatic pick is honest (issue 20 item 2): ranked by third-party validation, never worse than OIDN."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from mcdenoise.infer.choose import card_validation, choose_model
+from mcdenoise.infer.oidn_method import OIDNMethod
+from mcdenoise.infer.sources import from_arrays
+
+pytest.importorskip("pyoidn")
+
+
+def _inputs(**guides: bool):
+    rng = np.random.default_rng(0)
+    c = rng.random((3, 16, 16)).astype(np.float32)
+    return from_arrays(c, albedo=c * 0 + 0.5 if guides.get("albedo") else None,
+                       normal=np.stack([c[0] * 0, c[0] * 0, c[0] * 0 + 1]) if guides.get("normal") else None,
+                       depth=c[:1] + 1 if guides.get("depth") else None)
+
+
+def _fake_shipped(monkeypatch: pytest.MonkeyPatch, relmse: dict[str, float], oidn: float) -> None:
+    """Every shipped card's validation block says: this model `relmse[name]`, OIDN `oidn`."""
+    from mcdenoise.models import weights as W
+
+    real = W.shipped()
+
+    def fake() -> list:
+        out = []
+        for sw in real:
+            card = json.loads(json.dumps(sw.card))
+            if sw.name in relmse:
+                card["validation"] = {"spp": {"8": {"model": {"relmse": relmse[sw.name]}, "oidn-high": {"relmse": oidn}}}}
+            else:
+                card.pop("validation", None)
+            out.append(type(sw)(**{**sw.__dict__, "card": card}))
+        return out
+
+    monkeypatch.setattr(W, "shipped", fake)
+
+
+@pytest.mark.parametrize("guides", [{}, {"albedo": True}, {"albedo": True, "normal": True},
+                                    {"albedo": True, "normal": True, "depth": True}])
+def test_oidn_is_picked_when_no_model_beats_it(monkeypatch: pytest.MonkeyPatch, guides: dict) -> None:
+    """Catches the old pick (best procedural test relMSE) handing a user a model that is worse
+    than OIDN on third-party scenes (wskp exploded highlights on Blender renders), for each input kind."""
+    _fake_shipped(monkeypatch, {"wskp": 0.9, "kpcn": 0.15}, oidn=0.06)
+    model, info = choose_model(_inputs(**guides))
+    assert isinstance(model, OIDNMethod) and info["name"] == "oidn"
+    # With every input wskp needs, it is a candidate and loses on its card; else none qualifies.
+    assert ("beats OIDN" if guides.get("depth") else "has the inputs") in info["why"]
+
+
+def test_a_model_that_beats_oidn_is_picked_by_its_validation(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Catches ranking by anything but the validation relMSE, or picking one that loses to OIDN."""
+    _fake_shipped(monkeypatch, {"wskp": 0.05, "kpcn": 0.07}, oidn=0.06)
+    model, info = choose_model(_inputs(albedo=True, normal=True, depth=True))
+    assert info["name"] == "wskp" and "0.05" in info["why"]
+
+
+def test_oidn_is_a_model_name_everywhere(tmp_path) -> None:
+    """Catches `--model oidn` refused by denoise or eval (the issue: accepted wherever a model name is)."""
+    from mcdenoise.infer.api import denoise
+
+    c = np.random.default_rng(1).random((3, 16, 16)).astype(np.float32)
+    out = denoise(c, model="oidn")
+    assert out.shape == c.shape and np.isfinite(out).all()
+    assert card_validation({"validation": {"spp": {"8": {"model": {"relmse": 1}, "oidn-high": {"relmse": 2}}}}}) == (1.0, 2.0)
+    assert card_validation({}) is None
