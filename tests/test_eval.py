@@ -384,3 +384,20 @@ def test_overloaded_machine_is_warned_about_under_the_tables(data: Path, tmp_pat
     doc = evaluate(data=[data], out=tmp_path / "r", spp=[4], oidn=[], classic=True, max_images=1, html=False,
                    progress=False)
     assert not any(n.startswith("timing:") for n in doc["notes"]) and "Warning" not in summary_text(doc)
+
+
+def test_small_evaluations_list_every_image(report: tuple[Path, dict, Path]) -> None:
+    """Bug caught (issue 19): the validation block gave only means, hiding the scenes where a model
+    is worse than the noisy input; a per-image table and that list are written for small sets."""
+    from mcdenoise.eval.resultsmd import render_block
+
+    _, doc, _ = report
+    md = render_block(doc)
+    k = doc["config"]["spp"][0]
+    assert f"relMSE per image at {k} spp" in md
+    rows = [ln for ln in md.splitlines() if ln.startswith("| ") and not ln.startswith("| spp") and not ln.startswith("| image")]
+    assert len({r.split("|")[1].strip() for r in rows}) >= len(doc["images"])
+    worse = {(r["image"], r["spp"]) for r in doc["rows"] if r["method"] != "noisy"} and [
+        r for r in doc["rows"] if r["method"] != "noisy" and r["relmse"] > next(
+            q["relmse"] for q in doc["rows"] if q["method"] == "noisy" and q["image"] == r["image"] and q["spp"] == r["spp"])]
+    assert ("Worse than the noisy input" in md) == bool(worse)

@@ -98,6 +98,44 @@ def _threads(doc: dict[str, Any]) -> str:
     return out + (f", models in {' and '.join(prec)}" if prec else "")
 
 
+#: Per-image tables are written for evaluations of at most this many images (the validation scenes).
+PER_IMAGE_MAX = 12
+
+
+def _short(image: str) -> str:
+    name = Path(str(image)).name
+    return name.split("_")[0] if "_" in name else name
+
+
+def _per_image(doc: dict[str, Any]) -> list[str]:
+    """relMSE per image and spp (best in bold), and where each model is worse than the noisy input."""
+    methods = [m["name"] for m in doc["methods"]]
+    rel: dict[tuple[int, str], dict[str, float]] = {}
+    for r in doc["rows"]:
+        if isinstance(r.get("relmse"), (int, float)):
+            rel.setdefault((int(r["spp"]), str(r["image"])), {})[r["method"]] = float(r["relmse"])
+    out: list[str] = []
+    for spp in doc["config"]["spp"]:
+        images = sorted({img for (k, img) in rel if k == spp}, key=_short)
+        if not images:
+            continue
+        out += ["", f"relMSE per image at {spp} spp (lowest in bold):", "",
+                "| image | " + " | ".join(methods) + " |", "|---|" + "---|" * len(methods)]
+        worse: dict[str, list[str]] = {}
+        for img in images:
+            row = rel[(spp, img)]
+            best = min(row.values())
+            cells = [(f"**{row[m]:.4g}**" if row[m] == best else f"{row[m]:.4g}") if m in row else "-" for m in methods]
+            out.append(f"| {_short(img)} | " + " | ".join(cells) + " |")
+            for m, v in row.items():
+                if m != "noisy" and "noisy" in row and v > row["noisy"]:
+                    worse.setdefault(m, []).append(_short(img))
+        if worse:
+            out += ["", "Worse than the noisy input (relMSE): " +
+                    "; ".join(f"{m} on {', '.join(v)}" for m, v in sorted(worse.items())) + "."]
+    return out
+
+
 def render_block(doc: dict[str, Any]) -> str:
     """The Markdown of one evaluation: provenance, mean tables, model ratios, floors, DoF subset."""
     p = doc["provenance"]
@@ -127,6 +165,8 @@ def render_block(doc: dict[str, Any]) -> str:
         sub_models = _model_table(doc, "dof_motion")
         if sub_models:
             lines += ["", *sub_models]
+    if len(doc["images"]) <= PER_IMAGE_MAX:
+        lines += _per_image(doc)
     if doc["notes"]:
         lines += ["", "Notes: " + "; ".join(doc["notes"])]
     return "\n".join(lines)
