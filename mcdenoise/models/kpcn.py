@@ -19,6 +19,10 @@ stack of ``layers`` 5x5 convolutions with ReLU between them (Sec. 4.1, 5.2). Its
 KPCN predicts a KxK kernel per pixel (softmax over the K^2 taps, Sec. 4.2) applied to the
 transformed noisy colour; DPCN predicts the transformed colour directly. The branches are
 recombined with Eq. 4: ``(albedo + eps) * diffuse + exp(specular) - 1``.
+
+Emitter pixels (an albedo above 1: lights and sky as Cycles writes them) read albedo 1 in the
+features, the division and Eq. 4 alike, and pass through unfiltered
+(:mod:`mcdenoise.models.emitters`); elsewhere that rule is the identity.
 """
 
 from __future__ import annotations
@@ -31,6 +35,7 @@ from torch import nn
 from mcdenoise.color import luminance
 from mcdenoise.data.channels import variance_name
 from mcdenoise.models.base import Denoiser, register_model
+from mcdenoise.models.emitters import as_reflectance, emitter_mask, pass_through
 from mcdenoise.ops.gather import gather, gather_rows
 from mcdenoise.ops.kernels import softmax_kernel
 
@@ -99,7 +104,7 @@ def kpcn_features(batch: dict[str, torch.Tensor], config: KPCNConfig) -> dict[st
     """
     eps = config.eps
     a_name, n_name, d_name = config.feature_channels()
-    albedo = batch[a_name]
+    albedo = as_reflectance(batch[a_name])
     normal = batch[n_name]
     depth = batch[d_name].clamp_min(0)
     # log(1 + d/s): a fixed map (no per-crop maximum); its variance by Eq. 5's first-order rule,
@@ -278,7 +283,7 @@ class KPCN(Denoiser):
         """Reference colours (B, 3, H, W) carried into each branch's domain with the noisy albedo
         (the feature albedo, as in :meth:`recombine`)."""
         if self.config.split:
-            albedo = batch[self.config.feature_channels()[0]]
+            albedo = as_reflectance(batch[self.config.feature_channels()[0]])
             return {
                 "diffuse": reference["diffuse"] / (albedo + self.config.eps),
                 "specular": torch.log1p(reference["specular"].clamp_min(0)),
@@ -292,12 +297,14 @@ class KPCN(Denoiser):
         the inverse is exact.
         """
         if self.config.split:
-            albedo = batch[self.config.feature_channels()[0]]
+            albedo = as_reflectance(batch[self.config.feature_channels()[0]])
             return (albedo + self.config.eps) * branches["diffuse"] + torch.expm1(branches["specular"])
         return torch.expm1(branches["radiance"])
 
     def forward(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
-        return self.recombine(self.forward_branches(batch), batch)
+        out = self.recombine(self.forward_branches(batch), batch)
+        colour = batch["diffuse"] + batch["specular"] if self.config.split else batch["radiance"]
+        return pass_through(out, colour, emitter_mask(batch[self.config.feature_channels()[0]]))
 
 
 _PAPER = "Bako, Vogels et al., Kernel-Predicting Convolutional Networks for Denoising Monte Carlo Renderings, SIGGRAPH 2017"

@@ -12,6 +12,10 @@ layer buffers are average-pooled to 1/2 and 1/4 resolution, each level has its o
 fed with the pooled layer embeddings and the U-Net decoder features at that resolution, every level
 is filtered and composited on its own, and the composited levels are upsampled and summed with
 trainable weights (Eq. 10).
+
+Emitter pixels (an albedo above 1 in any sample: lights and sky as Cycles writes them) read albedo
+1 in the features and pass through unfiltered (:mod:`mcdenoise.models.emitters`); the kernels are
+normalised, so elsewhere the output stays a convex combination of input radiance by design.
 """
 
 from __future__ import annotations
@@ -33,6 +37,7 @@ from mcdenoise.models.layer_config import (  # noqa: F401  (LAYER_CHANNELS, Laye
     _small_optimized,
 )
 from mcdenoise.models.base import Denoiser, register_model
+from mcdenoise.models.emitters import ALBEDO_CHANNELS, as_reflectance, batch_emitter_mask, pass_through
 from mcdenoise.ops.composite import composite_layers, gather_layer_sums, splat_layer_sums
 from mcdenoise.ops.multiscale import build_pyramid, combine_levels
 
@@ -129,6 +134,8 @@ class LayerDenoiser(Denoiser):
             x = batch[name]
             if x.dim() != 5:
                 raise ValueError(f"layer: expects per-sample '{name}' of shape (B, S, C, H, W), got {tuple(x.shape)}")
+            if name in ALBEDO_CHANNELS:
+                x = as_reflectance(x)
             parts.append(signed_log1p(x) if name in _LOG_CHANNELS else x)
         if cfg.circle_of_confusion:
             d = batch["depth"]
@@ -209,6 +216,10 @@ class LayerDenoiser(Denoiser):
 
     def forward(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
         """Denoise: per-sample buffers -> ``(B, 3, H, W)`` linear radiance."""
+        out = self._denoise(batch)
+        return pass_through(out, batch["radiance"], batch_emitter_mask(batch, self.config.channels))
+
+    def _denoise(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
         cfg = self.config
         ctx, decoded, (l_rad, l_w, l_n, l_emb) = self._layer_sums(batch)
         if not cfg.hierarchical:

@@ -29,6 +29,7 @@ from torch import nn
 from mcdenoise.data.channels import SCENE_FEATURES, num_components
 from mcdenoise.models.blocks import FCStack, UNet, signed_log1p
 from mcdenoise.models.base import Denoiser, register_model
+from mcdenoise.models.emitters import ALBEDO_CHANNELS, as_reflectance, batch_emitter_mask, pass_through
 from mcdenoise.ops.gather import gather, gather_rows
 from mcdenoise.ops.kernels import destination_max, per_destination_exp, per_pixel_exp
 from mcdenoise.ops.splat import SplatAccumulator, normalize_splat, splat, splat_into_
@@ -162,6 +163,8 @@ class SBMC(Denoiser):
         for name, x in zip(cfg.channels, xs):
             if x.dim() != 5:
                 raise ValueError(f"SBMC expects per-sample '{name}' of shape (B, S, C, H, W), got {tuple(x.shape)}")
+        # Emitter pixels read albedo 1 (mcdenoise.models.emitters).
+        xs = [as_reflectance(x) if name in ALBEDO_CHANNELS else x for name, x in zip(cfg.channels, xs)]
         dtype = xs[0].dtype
         for x in xs[1:]:
             dtype = torch.promote_types(dtype, x.dtype)
@@ -295,7 +298,12 @@ class SBMC(Denoiser):
         return normalize_splat(out[:, :3], out[:, 3:], cfg.eps)
 
     def forward(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
-        """Denoise: per-sample buffers -> ``(B, 3, H, W)`` linear radiance."""
+        """Denoise: per-sample buffers -> ``(B, 3, H, W)`` linear radiance; emitter pixels (an
+        albedo above 1 in any sample) pass through unfiltered (:mod:`mcdenoise.models.emitters`)."""
+        out = self._denoise(batch)
+        return pass_through(out, batch["radiance"], batch_emitter_mask(batch, self.config.channels))
+
+    def _denoise(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
         cfg = self.config
         if not torch.is_grad_enabled():
             return self._forward_banded(batch)

@@ -13,6 +13,9 @@ Per frame (Sec. 4, 5.1):
    :func:`mcdenoise.ops.importance.fused_importance_filter`;
 4. the same effective albedo is multiplied back (so the inverse is exact).
 
+Emitter pixels (an albedo above 1: lights and sky as Cycles writes them) read albedo 1 and pass
+through unfiltered (:mod:`mcdenoise.models.emitters`); elsewhere that rule is the identity.
+
 Temporal accumulation (Sec. 4.1) runs before the network on sequences and is kept apart from the
 per-frame forward: :func:`temporal_accumulate` (re-exported from :mod:`mcdenoise.ops.temporal`).
 
@@ -28,6 +31,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from mcdenoise.models.base import Denoiser, register_model
+from mcdenoise.models.emitters import as_reflectance, emitter_mask, pass_through
 from mcdenoise.ops.importance import fused_importance_filter
 from mcdenoise.ops.temporal import temporal_accumulate
 
@@ -86,12 +90,13 @@ def wskp_input(
     batch: dict[str, torch.Tensor], threshold: float
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """From the stored buffers: network input (B, 10, H, W), HDR irradiance (B, 3, H, W) and the
-    effective albedo it was demodulated with (B, 3, H, W), see :func:`effective_albedo`."""
+    effective albedo it was demodulated with (B, 3, H, W), see :func:`effective_albedo`. Emitter
+    pixels (albedo above 1) read albedo 1 in both (:func:`mcdenoise.models.emitters.as_reflectance`)."""
     missing = [n for n in ("radiance", "albedo", "normal", "depth") if n not in batch]
     if missing:
         raise ValueError(f"WSKP: batch lacks channels {missing}")
     radiance = batch["radiance"]
-    albedo = batch["albedo"]
+    albedo = as_reflectance(batch["albedo"])
     # A fixed compressive map, not the paper's per-image [0, 1] scaling: a per-image maximum
     # depends on the crop or tile the network sees, so tiles of one image would disagree (seams).
     depth = batch["depth"].clamp_min(0)
@@ -218,7 +223,7 @@ class WSKP(Denoiser):
         z = self.net(x)
         n = len(self.config.kernel_sizes)
         filtered = fused_importance_filter(irradiance, z[:, :n], z[:, n:], sizes=tuple(self.config.kernel_sizes))
-        return filtered * albedo
+        return pass_through(filtered * albedo, batch["radiance"], emitter_mask(batch["albedo"]))
 
     def reparameterize(self) -> "WSKP":
         """Fold every RepVGG block into one 5x5 conv for inference; puts the model in eval mode.
