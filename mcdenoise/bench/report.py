@@ -113,6 +113,12 @@ def markdown(res: dict[str, Any], command: str = "") -> str:
                 f"| {e['method']} | {e['spp'] if e['spp'] is not None else '-'} | {_ms(e['median_s'])} | "
                 f"{_fmt(r['high'], '.3g')} | {_fmt(r['fast'], '.3g')} | {_fmt(peak / 2**20 if peak is not None else None, ',.0f')} | "
                 f"{_fmt(fpp / 1e6 if fpp else None, '.3g')} | {_fmt(frac, '.1f')} |")
+        comb = [e for e in rows if e["method"].startswith("combine:")]
+        hi = _oidn(res, w, h, "high")
+        if comb and hi:
+            lines += ["A combiner's time above is its own (OIDN's output is one of its inputs); with OIDN high "
+                      "first, the whole path takes " + ", ".join(
+                          f"{e['method']} {_ms(e['median_s'] + hi)} ({(e['median_s'] + hi) / hi:.3g}x OIDN high)" for e in comb) + ".", ""]
         lines.append("")
     lines += _scaling(res, sizes)
     lines += _training(res)
