@@ -2,14 +2,17 @@
 
     mcdenoise denoise INPUT -o OUTPUT.exr [--model NAME|WEIGHTS] [--albedo F] [--normal F] [--depth F]
                       [--device cpu|cuda] [--tile auto|N] [--max-memory 4G] [--preview OUT.png] [--force]
+                      [--replace-combined]
 
 INPUT is a multi-layer EXR in any naming of ``mcdenoise/io/names.py``, a colour EXR with its
 features in separate files (``--albedo``, ``--normal``, ``--depth``, as OIDN's tools take them),
 or an image folder of ``mcdenoise render`` (whose per-sample buffers feed the sample models).
 Without ``--model`` the best shipped model whose inputs are present runs; the command says which
 and which channels it read. The output holds the denoised radiance as top-level ``R, G, B``
-(float32), written atomically; the input is never overwritten, nor an existing output without
-``--force``. See docs/DENOISE.md.
+(float32); a Blender multi-layer EXR is written back whole (every pass, alpha and header
+attribute bit for bit) with the result added as the pass ``<ViewLayer>.Denoised``, or written into
+``Combined`` with ``--replace-combined`` (``mcdenoise/io/blender.py``). Written atomically; the
+input is never overwritten, nor an existing output without ``--force``. See docs/DENOISE.md.
 """
 
 from __future__ import annotations
@@ -42,6 +45,9 @@ def add_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--max-memory", default="4G", help="memory budget of one tile, e.g. 4G or 512M (default 4G)")
     p.add_argument("--preview", type=Path, default=None, help="also write an 8-bit sRGB PNG preview here")
     p.add_argument("--force", action="store_true", help="replace an existing OUTPUT")
+    p.add_argument("--replace-combined", action="store_true",
+                   help="Blender input: write the result into the Combined pass instead of a new Denoised "
+                        "pass (every other pass, the alpha and the header are kept either way)")
 
 
 def _same(a: Path, b: Path) -> bool:
@@ -140,7 +146,8 @@ def _denoise(args: argparse.Namespace, src: Path, tile: int | str, budget: int) 
     from mcdenoise.infer.choose import choose_model
     from mcdenoise.infer.run import default_device, denoise_inputs, describe_plan
     from mcdenoise.infer.sources import from_exr, from_folder
-    from mcdenoise.io.exr import tonemap, write_exr_raw, write_png
+    from mcdenoise.io import blender
+    from mcdenoise.io.exr import read_exr_file, tonemap, write_exr_file, write_exr_raw, write_png
     from mcdenoise.errors import OutputError
     from mcdenoise.io.safety import atomic_file, os_error, remove_stale_temps
 
@@ -156,6 +163,12 @@ def _denoise(args: argparse.Namespace, src: Path, tile: int | str, budget: int) 
         inputs = from_folder(src)
     else:
         inputs = from_exr(src, albedo=args.albedo, normal=args.normal, depth=args.depth)
+    # A Blender file is written back whole, with the result as a pass of its own (io/blender.py).
+    source = read_exr_file(src) if src.is_file() else None
+    to_blender = source is not None and blender.is_cycles(list(source[1]))
+    if args.replace_combined and not to_blender:
+        raise McDenoiseError(f"{src}: --replace-combined needs a Blender multi-layer EXR (one with a view-layer "
+                             f"'Combined' or 'Noisy Image' pass)")
     model, info = choose_model(inputs, args.model, device=device, precision=args.precision)
     print(f"model: {info['name']} ({info['preset']}, {info['source']} weights {info['weights']}; {info['why']}; "
           f"{info['precision']})")
@@ -174,7 +187,13 @@ def _denoise(args: argparse.Namespace, src: Path, tile: int | str, budget: int) 
         with contextlib.ExitStack() as stack:
             tmps = [stack.enter_context(atomic_file(path)) for path in targets]
             try:
-                write_exr_raw(tmps[0], {"R": out[0], "G": out[1], "B": out[2]}, attributes=attrs)
+                if to_blender:
+                    assert source is not None
+                    channels, header = blender.blender_output(source[1], source[0], out, path=src,
+                                                              replace_combined=args.replace_combined)
+                    write_exr_file(tmps[0], channels, {**header, **attrs})
+                else:
+                    write_exr_raw(tmps[0], {"R": out[0], "G": out[1], "B": out[2]}, attributes=attrs)
             except OutputError as e:  # named by its temporary name: name the output
                 raise OutputError(args.output, e.problem) from None
             if args.preview is not None:

@@ -221,14 +221,23 @@ def from_exr(path: str | os.PathLike, *, albedo: str | os.PathLike | None = None
     """Read a (multi-layer) EXR plus optional single-feature files (see the module docstring).
 
     Layers outside the vocabulary are dropped, except a top-level image with no recognised name,
-    which is taken as the radiance when the file has no other.
+    which is taken as the radiance when the file has no other. A Blender Cycles file is read with
+    its conventions (:mod:`mcdenoise.io.blender`: ``Combined`` when there is no ``Noisy Image``,
+    world-space normals when the header gives the camera).
     """
-    from mcdenoise.io.exr import read_exr
+    from mcdenoise.io import blender
+    from mcdenoise.io.exr import read_exr, read_exr_header
 
     path = Path(path)
     layers = read_exr(path, spp=spp)
+    header = read_exr_header(path)
+    if blender.is_cycles([c.name for c in header["channels"]]):
+        layers = blender.apply_conventions(layers, header, path)
     if "radiance" not in layers and "image" in layers and layers["image"].shape[0] in (3, 4):
         layers["radiance"] = layers["image"][:3]
+    if "radiance" not in layers and blender.is_cycles([c.name for c in header["channels"]]):
+        raise InputError(f"{path}: a Blender file with neither a 'Noisy Image' nor a 'Combined' pass: enable the "
+                         f"Combined pass in View Layer Properties > Passes; layers: {', '.join(sorted(layers))}")
     if "radiance" not in layers:
         raise InputError(f"{path}: no colour (radiance) channels; layers: {', '.join(sorted(layers)) or 'none'}")
     h, w = layers["radiance"].shape[1:]

@@ -109,6 +109,38 @@ def read_exr_raw(path: str | os.PathLike) -> dict[str, np.ndarray]:
     return out
 
 
+def read_exr_file(path: str | os.PathLike) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+    """The header attributes and EXR channel name -> ``(H, W)`` array in its stored pixel type
+    (float16, float32, uint32): a file read to be written back unchanged (:func:`write_exr_file`)."""
+    part = _open_exr(Path(path))
+    return dict(part.header), {name: np.asarray(ch.pixels) for name, ch in part.channels.items()}
+
+
+def write_exr_file(path: str | os.PathLike, channels: dict[str, np.ndarray], header: dict[str, Any]) -> Path:
+    """Write ``channels`` in their own pixel types with the header attributes ``header`` (those
+    of :func:`read_exr_file`, compression included; the channel list comes from ``channels``),
+    atomically. Values are written bit for bit."""
+    import OpenEXR
+
+    data = {}
+    for name, arr in channels.items():
+        arr = np.asarray(arr)
+        if arr.ndim != 2:
+            raise ValueError(f"EXR channel {name!r}: expected (H, W), got shape {arr.shape}")
+        if arr.dtype not in (np.float16, np.float32, np.uint32):
+            arr = arr.astype(np.float32)
+        data[name] = np.ascontiguousarray(arr)  # OpenEXR 3.5 writes strided arrays corrupted
+    head: dict[str, Any] = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    head.update({k: v for k, v in header.items() if k != "channels"})
+    final = Path(path)
+    with atomic_file(final) as tmp:
+        try:
+            OpenEXR.File(head, data).write(str(tmp))
+        except RuntimeError as e:
+            raise _write_error(final, e) from None
+    return final
+
+
 def read_exr(
     path: str | os.PathLike,
     *,

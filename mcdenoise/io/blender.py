@@ -1,0 +1,143 @@
+"""Blender Cycles' conventions, in one place (issue 21): what its multi-layer EXR holds, how that
+differs from our own format, and the Blender-ready output file.
+
+The channel *names* are mapped in :mod:`mcdenoise.io.names` (``<ViewLayer>.Noisy Image.R`` ->
+``radiance``, ``Denoising Albedo`` -> ``albedo``, ``Denoising Normal`` -> ``normal``,
+``Denoising Depth`` -> ``depth``). The *contents* differ from ours in three ways:
+
+* **Colour.** ``Noisy Image`` is written only while Blender's own denoiser is on (its result is
+  then in ``Combined``). With the denoiser off there is no ``Noisy Image`` and the noisy colour is
+  ``Combined``: :func:`colour_fallback` takes it, with a one-line note.
+* **Normals are in camera space** (x right, y up, z along the view direction), not world space as
+  our renderer writes them; they follow mirror and glass bounces to the next rough surface, and are
+  0 where no rough surface was found (sky, lights). Decision: when the file's header carries the
+  OpenEXR standard attribute ``worldToCamera`` (a 4x4 matrix, row-vector convention, camera
+  space as above) the normals are rotated to world space (:func:`normals_to_world`); otherwise they
+  are fed **as they are**. Blender 4.5 writes no camera matrix, so in practice they go in as camera
+  space, and that is defensible: OIDN, the default method, takes normals "in world or view space"
+  alike; our models read normals through local differences and a fixed [0, 1] map, and the shipped
+  ones were trained on world-space normals, so on Blender files they see a rotated but otherwise
+  alike distribution. Guessing a camera (none is written) would be worse than either.
+* **Albedo exceeds 1 on lights and sky.** Cycles writes the emission colour where a light is seen
+  directly or in a mirror (up to 1651 in issue 21's scenes) and the background colour on sky
+  pixels (up to 20), with normal 0 there; ours writes [0, 1] and 0 on a miss. The values are passed
+  on unchanged (OIDN is given what Blender gives its own OIDN); every model treats a pixel with an
+  albedo above 1 as an emitter, passed through unfiltered (:mod:`mcdenoise.models.emitters`).
+
+Output (:func:`blender_output`): every input channel is written back bit for bit (same pixel type),
+with every header attribute, and the result is added as its own pass ``<ViewLayer>.Denoised``
+(R, G, B and the colour pass's alpha), or written into ``Combined`` with ``replace_combined``, so
+the file drops into a compositor setup that reads passes from it.
+"""
+
+from __future__ import annotations
+
+import warnings
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from mcdenoise.errors import McDenoiseError
+
+__all__ = [
+    "CYCLES_PASSES", "DENOISED_PASS", "BlenderNote", "is_cycles", "colour_layer", "colour_fallback",
+    "normals_to_world", "apply_conventions", "blender_output",
+]
+
+#: Pass names of a Cycles multi-layer EXR with denoising data (Blender 4.x).
+CYCLES_PASSES = ("Combined", "Noisy Image", "Denoising Albedo", "Denoising Normal", "Denoising Depth")
+#: The pass the result is written to.
+DENOISED_PASS = "Denoised"
+#: Header attributes that describe the channel list and pixel layout (written by the library).
+_STRUCTURAL = ("channels",)
+
+
+class BlenderNote(UserWarning):
+    """A one-line note on how a Blender file was read (printed by ``mcdenoise denoise``)."""
+
+
+def _pass_of(channel: str) -> tuple[str, str, str]:
+    """``"ViewLayer.Noisy Image.R"`` -> ``("ViewLayer.", "Noisy Image", "R")``; ``"R"`` -> ``("", "", "R")``."""
+    layer, _, comp = channel.rpartition(".")
+    prefix, _, name = layer.rpartition(".")
+    return (prefix + "." if prefix else ""), name, comp
+
+
+def is_cycles(channel_names: list[str]) -> bool:
+    """Does the channel list look like a Cycles multi-layer EXR (a view-layer prefix and a Cycles
+    colour or denoising pass)?"""
+    return any(prefix and name in CYCLES_PASSES for prefix, name, _ in map(_pass_of, channel_names))
+
+
+def colour_layer(channel_names: list[str]) -> tuple[str, str] | None:
+    """``(view-layer prefix, pass)`` of the colour the denoiser reads: ``Noisy Image`` if there is
+    one, else ``Combined``; None when neither exists."""
+    found: dict[str, str] = {}
+    for prefix, name, _ in map(_pass_of, channel_names):
+        if name in ("Noisy Image", "Combined") and name not in found:
+            found[name] = prefix
+    for name in ("Noisy Image", "Combined"):
+        if name in found:
+            return found[name], name
+    return None
+
+
+def colour_fallback(layers: dict[str, np.ndarray], path: Path) -> np.ndarray | None:
+    """``Combined``'s RGB (3, H, W) when the file has no ``Noisy Image`` (Blender's denoiser off),
+    with a :class:`BlenderNote`; None when there is no ``Combined`` either."""
+    for name, arr in layers.items():
+        if name.rpartition(".")[2] == "Combined" and arr.shape[0] >= 3:
+            warnings.warn(f"{path}: no 'Noisy Image' pass (Blender's denoiser was off): denoising '{name}'",
+                          BlenderNote, stacklevel=2)
+            return arr[:3]
+    return None
+
+
+def normals_to_world(normal: np.ndarray, world_to_camera: Any) -> np.ndarray:
+    """Camera-space normals (3, H, W) -> world space, with the header's ``worldToCamera`` (4x4,
+    row vectors: ``p_cam = p_world @ M``). Normals map with the inverse transpose of the linear
+    part, so ``n_world = n_cam @ M3.T`` up to length; unit length is restored, zeros stay 0."""
+    m = np.asarray(world_to_camera, dtype=np.float64).reshape(4, 4)[:3, :3]
+    n = np.einsum("chw,dc->dhw", normal.astype(np.float64), m)  # (n_cam @ M3.T) per pixel
+    length = np.sqrt((n * n).sum(axis=0, keepdims=True))
+    scale = np.where(length > 0, np.sqrt((normal.astype(np.float64) ** 2).sum(axis=0, keepdims=True))
+                     / np.where(length > 0, length, 1), 0)
+    return (n * scale).astype(np.float32)
+
+
+def apply_conventions(layers: dict[str, np.ndarray], header: dict[str, Any], path: Path) -> dict[str, np.ndarray]:
+    """Our reading of a Cycles file's layers (from :func:`mcdenoise.io.exr.read_exr`), see the
+    module docstring: the ``Combined`` fallback and world-space normals when the header allows."""
+    if "radiance" not in layers:
+        rgb = colour_fallback(layers, path)
+        if rgb is not None:
+            layers["radiance"] = rgb
+    w2c = header.get("worldToCamera")
+    if "normal" in layers and w2c is not None:
+        layers["normal"] = normals_to_world(layers["normal"], w2c)
+    return layers
+
+
+def blender_output(channels: dict[str, np.ndarray], header: dict[str, Any], result: np.ndarray, *,
+                   replace_combined: bool = False, path: Path | None = None) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+    """The Blender-ready output: every input channel (native dtype, untouched), every header
+    attribute, and ``result`` (3, H, W) as ``<ViewLayer>.Denoised.R/G/B`` (plus the colour pass's
+    alpha as ``.A``), or in ``Combined`` with ``replace_combined`` (its alpha kept; a half
+    ``Combined`` stays half). Returns the channels and the header to write."""
+    names = list(channels)
+    where = colour_layer(names)
+    if where is None:
+        raise McDenoiseError(f"{path}: no 'Noisy Image' or 'Combined' pass to place the result beside")
+    prefix, colour = where
+    out = dict(channels)
+    alpha = channels.get(f"{prefix}{colour}.A")
+    target = "Combined" if replace_combined else DENOISED_PASS
+    for i, c in enumerate("RGB"):
+        key = f"{prefix}{target}.{c}"
+        dtype = channels[key].dtype if key in channels and channels[key].dtype == np.float16 else np.float32
+        out[key] = np.ascontiguousarray(result[i], dtype=dtype)
+    if alpha is not None and f"{prefix}{target}.A" not in out:
+        out[f"{prefix}{target}.A"] = alpha
+    head = {k: v for k, v in header.items() if k not in _STRUCTURAL}
+    return out, head

@@ -1,0 +1,203 @@
+"""Blender Cycles files in, a Blender-ready file out (issue 21 items 1 and 3, without a real Blender).
+
+The files are synthetic multi-layer EXRs named as Blender 4.5 writes them: passes under a
+``ViewLayer.`` prefix (``Combined`` and ``Noisy Image`` RGBA, ``Denoising Normal`` XYZ,
+``Denoising Albedo`` RGB, ``Denoising Depth`` Z; Cycles' ``add_pass`` calls), other passes in
+half and float, a uint ID pass, Blender's string header attributes and PIZ compression.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import OpenEXR
+import pytest
+import torch
+from safetensors.torch import save_file
+
+from mcdenoise.cli.main import main
+from mcdenoise.infer.sources import from_exr
+from mcdenoise.io import blender
+from mcdenoise.io.exr import read_exr_file, write_exr_file
+from mcdenoise.models import build_model
+from mcdenoise.models.weights import load_weights
+
+H, W = 24, 28
+HEADER = {"BlenderMultiChannel": "Blender V2.55.1 and newer", "Frame": "1", "Camera": "Camera",
+          "Scene": "Scene", "RenderTime": "00:01.20", "Date": "2026/11/25 19:00:00",
+          "compression": OpenEXR.PIZ_COMPRESSION}
+#: Pixel (row, col) of a light seen in a mirror: albedo = the emission colour, normal 0.
+LIGHT = (12, 14)
+
+
+def blender_exr(path, *, noisy: bool = True, header: dict | None = None) -> dict[str, np.ndarray]:
+    """Write a Blender 4.5-like multi-layer EXR; returns its channels as written."""
+    rng = np.random.default_rng(3)
+    ch: dict[str, np.ndarray] = {}
+    colour = (rng.random((3, H, W)) * 2).astype(np.float32)
+    colour[:, LIGHT[0], LIGHT[1]] = 900.0
+    alpha = np.where(rng.random((H, W)) > 0.1, 1.0, 0.0).astype(np.float32)
+    for c, a in zip("RGBA", [*colour, alpha]):
+        ch[f"ViewLayer.Combined.{c}"] = (a * 0.5 if c != "A" else a).astype(np.float32)  # Blender's denoised
+        if noisy:
+            ch[f"ViewLayer.Noisy Image.{c}"] = a
+    albedo = rng.random((3, H, W)).astype(np.float32)
+    albedo[:, LIGHT[0], LIGHT[1]] = 1651.0
+    normal = rng.normal(size=(3, H, W)).astype(np.float32)
+    normal /= np.linalg.norm(normal, axis=0, keepdims=True)
+    normal[:, LIGHT[0], LIGHT[1]] = 0.0
+    for c, a in zip("RGB", albedo):
+        ch[f"ViewLayer.Denoising Albedo.{c}"] = a
+    for c, a in zip("XYZ", normal):
+        ch[f"ViewLayer.Denoising Normal.{c}"] = a
+        ch[f"ViewLayer.Normal.{c}"] = a.astype(np.float16)
+    ch["ViewLayer.Denoising Depth.Z"] = (rng.random((H, W)) * 5 + 1).astype(np.float32)
+    ch["ViewLayer.Depth.Z"] = ch["ViewLayer.Denoising Depth.Z"].copy()
+    for c in "RGB":
+        ch[f"ViewLayer.DiffCol.{c}"] = rng.random((H, W)).astype(np.float16)
+    ch["ViewLayer.IndexOB.X"] = rng.integers(0, 5, (H, W)).astype(np.uint32)
+    write_exr_file(path, ch, {**HEADER, **(header or {})})
+    return ch
+
+
+@pytest.fixture
+def wskp(tmp_path):
+    torch.manual_seed(0)
+    path = tmp_path / "wskp.safetensors"
+    save_file(build_model("wskp", "small").state_dict(), str(path), metadata={"model": "wskp", "preset": "small"})
+    return str(path)
+
+
+def _bits(a: np.ndarray) -> np.ndarray:
+    return a.view({2: np.uint16, 4: np.uint32}[a.dtype.itemsize])
+
+
+def _model_output(weights: str, path) -> np.ndarray:
+    inputs = from_exr(path)
+    model = build_model("wskp", "small")
+    load_weights(model, weights)
+    batch = {k: torch.from_numpy(inputs.pixels[k])[None] for k in ("radiance", "albedo", "normal", "depth")}
+    with torch.no_grad():
+        return model.eval()(batch)[0].numpy()
+
+
+def _assert_kept(src: dict[str, np.ndarray], got: dict[str, np.ndarray], skip: tuple[str, ...] = ()) -> None:
+    for name, arr in src.items():
+        if name in skip:
+            continue
+        assert name in got, f"input channel {name} missing from the output"
+        assert got[name].dtype == arr.dtype, f"{name}: {arr.dtype} became {got[name].dtype}"
+        assert np.array_equal(_bits(got[name]), _bits(arr)), f"{name}: values changed"
+
+
+def test_output_keeps_every_pass_and_adds_denoised(tmp_path, wskp, capfd):
+    """Catches issue 21's output that was not a Blender file: only top-level R, G, B, every other
+    pass, the alpha, the view-layer prefix and Blender's metadata dropped. Every input channel must
+    survive bit for bit in its pixel type, every header attribute too, and the result is the pass
+    ViewLayer.Denoised with the colour pass's alpha."""
+    src, out = tmp_path / "render.exr", tmp_path / "clean.exr"
+    channels = blender_exr(src)
+    rc = main(["denoise", str(src), "-o", str(out), "--model", wskp, "--precision", "float32"])
+    assert rc == 0, capfd.readouterr().err
+    header, got = read_exr_file(out)
+    _assert_kept(channels, got)
+    for key, value in HEADER.items():
+        assert header[key] == value, f"header {key}: {value!r} became {header.get(key)!r}"
+    assert header["mcdenoise_model"] == "wskp"
+    assert not {"R", "G", "B"} & set(got), "no top-level image beside the Blender passes"
+    result = np.stack([got[f"ViewLayer.Denoised.{c}"] for c in "RGB"])
+    np.testing.assert_allclose(result, _model_output(wskp, src), rtol=1e-5, atol=1e-6)
+    assert np.array_equal(got["ViewLayer.Denoised.A"], channels["ViewLayer.Noisy Image.A"])
+    # The light seen in the mirror (albedo 1651) passes through instead of exploding.
+    assert np.allclose(result[:, LIGHT[0], LIGHT[1]], 900.0)
+
+
+def test_replace_combined(tmp_path, wskp, capfd):
+    """Catches --replace-combined writing anywhere but Combined's RGB, or dropping its alpha or
+    another pass."""
+    src, out = tmp_path / "render.exr", tmp_path / "clean.exr"
+    channels = blender_exr(src)
+    rc = main(["denoise", str(src), "-o", str(out), "--model", wskp, "--precision", "float32", "--replace-combined"])
+    assert rc == 0, capfd.readouterr().err
+    _, got = read_exr_file(out)
+    _assert_kept(channels, got, skip=tuple(f"ViewLayer.Combined.{c}" for c in "RGB"))
+    assert not any(".Denoised." in n for n in got)
+    result = np.stack([got[f"ViewLayer.Combined.{c}"] for c in "RGB"])
+    np.testing.assert_allclose(result, _model_output(wskp, src), rtol=1e-5, atol=1e-6)
+
+
+def test_replace_combined_needs_a_blender_file(tmp_path, wskp, capfd):
+    """Catches --replace-combined silently ignored on a file with no Combined pass: one line
+    naming the file."""
+    src = tmp_path / "plain.exr"
+    write_exr_file(src, {c: np.ones((H, W), np.float32) for c in "RGB"}, {})
+    rc = main(["denoise", str(src), "-o", str(tmp_path / "o.exr"), "--model", wskp, "--replace-combined"])
+    err = [ln for ln in capfd.readouterr().err.splitlines() if ln.strip()]
+    assert rc != 0 and len(err) == 1 and str(src) in err[0] and "--replace-combined" in err[0]
+
+
+def test_combined_is_the_colour_when_noisy_image_is_missing(tmp_path, wskp, capfd):
+    """Catches issue 21's refusal of a render made with Blender's denoiser off (no Noisy Image:
+    the noisy colour is Combined): Combined is read, with a one-line note; the output keeps it."""
+    src, out = tmp_path / "render.exr", tmp_path / "clean.exr"
+    channels = blender_exr(src, noisy=False)
+    with pytest.warns(blender.BlenderNote, match="no 'Noisy Image' pass"):
+        inputs = from_exr(src)
+    want = np.stack([channels[f"ViewLayer.Combined.{c}"] for c in "RGB"])
+    assert np.array_equal(inputs.pixels["radiance"], want)
+    rc = main(["denoise", str(src), "-o", str(out), "--model", wskp])
+    err = capfd.readouterr().err
+    assert rc == 0, err
+    notes = [ln for ln in err.splitlines() if "Noisy Image" in ln]
+    assert len(notes) == 1 and "ViewLayer.Combined" in notes[0], err
+    _, got = read_exr_file(out)
+    _assert_kept(channels, got)
+    assert np.array_equal(got["ViewLayer.Denoised.A"], channels["ViewLayer.Combined.A"])
+
+
+def test_no_colour_pass_says_what_to_do(tmp_path, wskp, capfd):
+    """Catches a Blender file with no colour pass refused without saying what to enable."""
+    src = tmp_path / "render.exr"
+    ch = blender_exr(src)
+    write_exr_file(src, {k: v for k, v in ch.items() if ".Combined." not in k and ".Noisy Image." not in k}, {})
+    rc = main(["denoise", str(src), "-o", str(tmp_path / "o.exr"), "--model", wskp])
+    err = [ln for ln in capfd.readouterr().err.splitlines() if ln.strip()]
+    assert rc != 0 and len(err) == 1 and str(src) in err[0] and "Combined pass" in err[0], err
+
+
+def test_normals_in_world_space_when_the_header_has_the_camera(tmp_path):
+    """Catches camera-space normals read as world space when the file says where the camera is
+    (OpenEXR's worldToCamera), and normals changed when it does not: rotated by the camera's
+    linear part (n_world = n_cam @ M3.T), length kept (coverage), zeros kept."""
+    plain, rotated = tmp_path / "plain.exr", tmp_path / "rot.exr"
+    ch = blender_exr(plain)
+    t = 0.7
+    m = np.eye(4, dtype=np.float32)
+    m[:3, :3] = [[np.cos(t), 0, -np.sin(t)], [0, 1, 0], [np.sin(t), 0, np.cos(t)]]
+    m[3, :3] = [1.0, 2.0, 3.0]  # the translation does not move normals
+    blender_exr(rotated, header={"worldToCamera": m})
+    cam = np.stack([ch[f"ViewLayer.Denoising Normal.{c}"] for c in "XYZ"])
+    assert np.array_equal(from_exr(plain).pixels["normal"], cam)
+    got = from_exr(rotated).pixels["normal"]
+    want = np.einsum("chw,dc->dhw", cam, m[:3, :3])
+    np.testing.assert_allclose(got, want, atol=1e-5)
+    assert np.array_equal(got[:, LIGHT[0], LIGHT[1]], np.zeros(3, np.float32))
+    half = blender.normals_to_world(cam * 0.5, m)  # a half-covered pixel keeps |n| = 0.5
+    np.testing.assert_allclose(np.linalg.norm(half, axis=0), 0.5 * np.linalg.norm(cam, axis=0), rtol=1e-5)
+
+
+def test_albedo_above_one_is_passed_on_unchanged(tmp_path):
+    """Catches a reader that clips or zeroes Cycles' emitter albedo: OIDN gets what Blender gives
+    its own OIDN, and the models' emitter rule (mcdenoise/models/emitters.py) needs the value."""
+    src = tmp_path / "render.exr"
+    blender_exr(src)
+    assert from_exr(src).pixels["albedo"][0, LIGHT[0], LIGHT[1]] == 1651.0
+
+
+def test_is_cycles_and_colour_layer():
+    """The detection the reader and writer share: a view-layer prefix and a Cycles pass."""
+    assert blender.is_cycles(["ViewLayer.Combined.R", "ViewLayer.Combined.A"])
+    assert blender.is_cycles(["RenderLayer.Denoising Albedo.R"])
+    assert not blender.is_cycles(["R", "G", "B", "albedo.R", "Combined.R"])
+    assert blender.colour_layer(["V.Combined.R", "V.Noisy Image.R"]) == ("V.", "Noisy Image")
+    assert blender.colour_layer(["V.Combined.R"]) == ("V.", "Combined")
+    assert blender.colour_layer(["R"]) is None
