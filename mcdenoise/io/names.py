@@ -7,7 +7,9 @@ Recognised naming schemes (``SCHEMES``):
 * ``cycles`` -- Blender Cycles multi-layer EXR with denoising data: ``<ViewLayer>.Noisy Image.R``,
   ``<ViewLayer>.Denoising Albedo.R``, ``<ViewLayer>.Denoising Normal.X``,
   ``<ViewLayer>.Denoising Depth.Z``. Any number of leading ``<prefix>.`` segments (view layer,
-  render layer) is stripped before lookup. Alpha (``.A``) is dropped.
+  render layer) is stripped before lookup. Alpha (``.A``) is dropped. The contents follow Cycles'
+  conventions, not ours (camera-space normals, albedo above 1 on lights and sky, ``Combined`` as
+  the colour when Blender's denoiser is off): see :mod:`mcdenoise.io.blender`.
 * ``mitsuba`` -- Mitsuba 3's ``aov`` integrator with the names of its documentation examples:
   top-level ``R, G, B`` (the image), ``dd.y.T`` / ``dd.T`` / ``depth.T`` (depth),
   ``nn.X`` / ``sh_normal.X`` (shading normal), ``albedo.R``, ``pos.X`` / ``position.X``.
