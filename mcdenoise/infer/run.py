@@ -17,8 +17,8 @@ from mcdenoise.infer.sources import Inputs
 from mcdenoise.infer.tiling import TilePlan, plan_tiles, run_tiled
 from mcdenoise.models.registry import Denoiser
 
-__all__ = ["default_device", "memory_cost", "tile_plan", "denoise_inputs", "RunInfo", "BUDGET_FRACTION", "describe_plan",
-           "MIN_CORE", "BudgetError"]
+__all__ = ["default_device", "memory_cost", "tile_plan", "emitter_reach", "denoise_inputs", "RunInfo",
+           "BUDGET_FRACTION", "describe_plan", "MIN_CORE", "BudgetError"]
 
 #: Share of ``max_memory`` given to one tile's model call; the rest holds the whole-image output,
 #: the reader's staging buffers (a window is read in its storage dtype, then converted) and Python.
@@ -68,15 +68,17 @@ def memory_cost(model: Denoiser, spp: int, device: torch.device) -> MemoryCost:
 
 
 def tile_plan(model: Denoiser, height: int, width: int, *, spp: int = 1, device: torch.device | str = "cpu",
-              tile: int | str | None = "auto", max_memory: int | None = None) -> TilePlan:
+              tile: int | str | None = "auto", max_memory: int | None = None, reach: int = 0) -> TilePlan:
     """The tile grid for ``model`` on an ``height x width`` image.
 
     ``tile``: ``"auto"``/None sizes tiles from ``max_memory`` (bytes, default 4 GiB) and the
-    measured per-pixel cost; an int fixes the core side. The overlap is the measured receptive field.
+    measured per-pixel cost; an int fixes the core side. The overlap is the measured receptive field
+    plus ``reach`` (:func:`emitter_reach`: how far the fill of emitter pixels looks).
     """
     device = torch.device(device)
     if tile not in (None, "auto"):
-        return plan_tiles(height, width, receptive=receptive_field(model), align=alignment(model), core=int(tile))
+        return plan_tiles(height, width, receptive=receptive_field(model) + reach, align=alignment(model),
+                          core=int(tile))
     if height * width <= SMALL_IMAGE:
         return plan_tiles(height, width, receptive=0)  # one tile; nothing to measure
     total = max_memory or DEFAULT_MAX_MEMORY
@@ -86,7 +88,7 @@ def tile_plan(model: Denoiser, height: int, width: int, *, spp: int = 1, device:
     if height * width <= window:
         return plan_tiles(height, width, receptive=0)  # fits whole: the receptive field is not needed
     align = alignment(model)
-    plan = plan_tiles(height, width, receptive=receptive_field(model), align=align, max_window_pixels=window)
+    plan = plan_tiles(height, width, receptive=receptive_field(model) + reach, align=align, max_window_pixels=window)
     core = min(math.ceil(MIN_CORE / align) * align, max(height, width))
     if plan.core < core:
         side = core + 2 * plan.overlap
@@ -95,6 +97,23 @@ def tile_plan(model: Denoiser, height: int, width: int, *, spp: int = 1, device:
                           f"{width}x{height} image: its smallest tile ({core} px + {plan.overlap} px overlap a side, "
                           f"{spp} spp) needs {_mib(need)}; give at least --max-memory {_mib(need)}, or --tile N")
     return plan
+
+
+def emitter_reach(inputs: Inputs, names: list[str]) -> int:
+    """Extra tile overlap for an image with emitter pixels (an albedo above 1 among the pixel
+    buffers the model reads): their colour is filled from up to ``FILL_STEPS`` pixels away
+    (:mod:`mcdenoise.models.emitters`), so a tile must see that much more to match the whole image.
+    0 for images without (every image of our own renderer). Per-sample albedo is judged by the
+    pixel means when the image has them."""
+    from mcdenoise.models.emitters import ALBEDO_CHANNELS, FILL_STEPS
+
+    wanted = [a for a in ALBEDO_CHANNELS if a in names]
+    if not wanted:
+        return 0
+    inputs.ensure_pixels()
+    if any(a in inputs.pixels and bool((inputs.pixels[a] > 1).any()) for a in wanted):
+        return FILL_STEPS + 1
+    return 0
 
 
 @dataclass
@@ -127,8 +146,9 @@ def denoise_inputs(inputs: Inputs, model: Denoiser, *, device: torch.device | st
     model = model.to(device).eval()
     kind = model.input_kind
     spp = inputs.samples.spp if (kind == "samples" and inputs.samples is not None) else 1
-    plan = tile_plan(model, inputs.height, inputs.width, spp=spp, device=device, tile=tile, max_memory=max_memory)
     names = [c for c in model.required_channels() if c != "scene_features"]
+    plan = tile_plan(model, inputs.height, inputs.width, spp=spp, device=device, tile=tile, max_memory=max_memory,
+                     reach=emitter_reach(inputs, names))
     if "oidn" in names:
         add_oidn(inputs)
 

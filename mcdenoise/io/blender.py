@@ -119,8 +119,10 @@ def apply_conventions(layers: dict[str, np.ndarray], header: dict[str, Any], pat
     return layers
 
 
-def blender_output(channels: dict[str, np.ndarray], header: dict[str, Any], result: np.ndarray, *,
-                   replace_combined: bool = False, path: Path | None = None) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+def blender_output(
+    channels: dict[str, np.ndarray], header: dict[str, Any], result: np.ndarray, *,
+    replace_combined: bool = False, path: Path | None = None,
+) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
     """The Blender-ready output: every input channel (native dtype, untouched), every header
     attribute, and ``result`` (3, H, W) as ``<ViewLayer>.Denoised.R/G/B`` (plus the colour pass's
     alpha as ``.A``), or in ``Combined`` with ``replace_combined`` (its alpha kept; a half

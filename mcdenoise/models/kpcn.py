@@ -21,7 +21,8 @@ transformed noisy colour; DPCN predicts the transformed colour directly. The bra
 recombined with Eq. 4: ``(albedo + eps) * diffuse + exp(specular) - 1``.
 
 Emitter pixels (an albedo above 1: lights and sky as Cycles writes them) read albedo 1 in the
-features, the division and Eq. 4 alike, and pass through unfiltered
+features, the division and Eq. 4 alike, their colour is filled from their neighbours in what the
+network and the kernels see, and they pass through unfiltered
 (:mod:`mcdenoise.models.emitters`); elsewhere that rule is the identity.
 """
 
@@ -35,7 +36,7 @@ from torch import nn
 from mcdenoise.color import luminance
 from mcdenoise.data.channels import variance_name
 from mcdenoise.models.base import Denoiser, register_model
-from mcdenoise.models.emitters import as_reflectance, emitter_mask, pass_through
+from mcdenoise.models.emitters import as_reflectance, emitter_mask, fill_emitters, pass_through
 from mcdenoise.ops.gather import gather, gather_rows
 from mcdenoise.ops.kernels import softmax_kernel
 
@@ -302,9 +303,11 @@ class KPCN(Denoiser):
         return torch.expm1(branches["radiance"])
 
     def forward(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
-        out = self.recombine(self.forward_branches(batch), batch)
+        emitters = emitter_mask(batch[self.config.feature_channels()[0]])
+        inner = fill_emitters(batch, emitters)
+        out = self.recombine(self.forward_branches(inner), inner)  # type: ignore[arg-type]
         colour = batch["diffuse"] + batch["specular"] if self.config.split else batch["radiance"]
-        return pass_through(out, colour, emitter_mask(batch[self.config.feature_channels()[0]]))
+        return pass_through(out, colour, emitters)
 
 
 _PAPER = "Bako, Vogels et al., Kernel-Predicting Convolutional Networks for Denoising Monte Carlo Renderings, SIGGRAPH 2017"

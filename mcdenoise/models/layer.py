@@ -14,7 +14,8 @@ is filtered and composited on its own, and the composited levels are upsampled a
 trainable weights (Eq. 10).
 
 Emitter pixels (an albedo above 1 in any sample: lights and sky as Cycles writes them) read albedo
-1 in the features and pass through unfiltered (:mod:`mcdenoise.models.emitters`); the kernels are
+1 in the features, their colour is filled from their neighbours in every sample, and they pass
+through unfiltered (:mod:`mcdenoise.models.emitters`); the kernels are
 normalised, so elsewhere the output stays a convex combination of input radiance by design.
 """
 
@@ -37,7 +38,7 @@ from mcdenoise.models.layer_config import (  # noqa: F401  (LAYER_CHANNELS, Laye
     _small_optimized,
 )
 from mcdenoise.models.base import Denoiser, register_model
-from mcdenoise.models.emitters import ALBEDO_CHANNELS, as_reflectance, batch_emitter_mask, pass_through
+from mcdenoise.models.emitters import ALBEDO_CHANNELS, as_reflectance, batch_emitter_mask, fill_emitters, pass_through
 from mcdenoise.ops.composite import composite_layers, gather_layer_sums, splat_layer_sums
 from mcdenoise.ops.multiscale import build_pyramid, combine_levels
 
@@ -216,8 +217,9 @@ class LayerDenoiser(Denoiser):
 
     def forward(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
         """Denoise: per-sample buffers -> ``(B, 3, H, W)`` linear radiance."""
-        out = self._denoise(batch)
-        return pass_through(out, batch["radiance"], batch_emitter_mask(batch, self.config.channels))
+        emitters = batch_emitter_mask(batch, self.config.channels)
+        out = self._denoise(fill_emitters(batch, emitters))  # type: ignore[arg-type]
+        return pass_through(out, batch["radiance"], emitters)
 
     def _denoise(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
         cfg = self.config

@@ -29,7 +29,7 @@ from torch import nn
 from mcdenoise.data.channels import SCENE_FEATURES, num_components
 from mcdenoise.models.blocks import FCStack, UNet, signed_log1p
 from mcdenoise.models.base import Denoiser, register_model
-from mcdenoise.models.emitters import ALBEDO_CHANNELS, as_reflectance, batch_emitter_mask, pass_through
+from mcdenoise.models.emitters import ALBEDO_CHANNELS, as_reflectance, batch_emitter_mask, fill_emitters, pass_through
 from mcdenoise.ops.gather import gather, gather_rows
 from mcdenoise.ops.kernels import destination_max, per_destination_exp, per_pixel_exp
 from mcdenoise.ops.splat import SplatAccumulator, normalize_splat, splat, splat_into_
@@ -299,9 +299,11 @@ class SBMC(Denoiser):
 
     def forward(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
         """Denoise: per-sample buffers -> ``(B, 3, H, W)`` linear radiance; emitter pixels (an
-        albedo above 1 in any sample) pass through unfiltered (:mod:`mcdenoise.models.emitters`)."""
-        out = self._denoise(batch)
-        return pass_through(out, batch["radiance"], batch_emitter_mask(batch, self.config.channels))
+        albedo above 1 in any sample) are filled from their neighbours in every sample and pass through
+        unfiltered (:mod:`mcdenoise.models.emitters`)."""
+        emitters = batch_emitter_mask(batch, self.config.channels)
+        out = self._denoise(fill_emitters(batch, emitters))  # type: ignore[arg-type]
+        return pass_through(out, batch["radiance"], emitters)
 
     def _denoise(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
         cfg = self.config

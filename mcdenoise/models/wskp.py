@@ -13,7 +13,8 @@ Per frame (Sec. 4, 5.1):
    :func:`mcdenoise.ops.importance.fused_importance_filter`;
 4. the same effective albedo is multiplied back (so the inverse is exact).
 
-Emitter pixels (an albedo above 1: lights and sky as Cycles writes them) read albedo 1 and pass
+Emitter pixels (an albedo above 1: lights and sky as Cycles writes them) read albedo 1, their
+colour is filled from their neighbours in what the network and the kernels see, and they pass
 through unfiltered (:mod:`mcdenoise.models.emitters`); elsewhere that rule is the identity.
 
 Temporal accumulation (Sec. 4.1) runs before the network on sequences and is kept apart from the
@@ -31,7 +32,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from mcdenoise.models.base import Denoiser, register_model
-from mcdenoise.models.emitters import as_reflectance, emitter_mask, pass_through
+from mcdenoise.models.emitters import as_reflectance, emitter_mask, fill_emitters, pass_through
 from mcdenoise.ops.importance import fused_importance_filter
 from mcdenoise.ops.temporal import temporal_accumulate
 
@@ -219,11 +220,12 @@ class WSKP(Denoiser):
         return z[:, :n], z[:, n:]
 
     def forward(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
-        x, irradiance, albedo = wskp_input(batch, self.config.demod_threshold)
+        emitters = emitter_mask(batch["albedo"])
+        x, irradiance, albedo = wskp_input(fill_emitters(batch, emitters), self.config.demod_threshold)
         z = self.net(x)
         n = len(self.config.kernel_sizes)
         filtered = fused_importance_filter(irradiance, z[:, :n], z[:, n:], sizes=tuple(self.config.kernel_sizes))
-        return pass_through(filtered * albedo, batch["radiance"], emitter_mask(batch["albedo"]))
+        return pass_through(filtered * albedo, batch["radiance"], emitters)
 
     def reparameterize(self) -> "WSKP":
         """Fold every RepVGG block into one 5x5 conv for inference; puts the model in eval mode.

@@ -7,8 +7,8 @@ The demodulated irradiance (same effective albedo as ``wskp``, see
 :func:`mcdenoise.models.wskp.effective_albedo`), box-downsampled to every level, is filtered there
 with :func:`fused_importance_filter`; the levels are combined from the coarsest with Eq. 7
 (``o = i_f - alpha U D i_f + alpha U i_c``, :func:`mcdenoise.ops.multiscale.multires_blend`, alpha a
-sigmoid) and the effective albedo is multiplied back. Emitter pixels (albedo above 1) read albedo 1
-and pass through unfiltered, as in ``wskp`` (:mod:`mcdenoise.models.emitters`). Inputs are edge-padded to a multiple of
+sigmoid) and the effective albedo is multiplied back. Emitter pixels (albedo above 1) read albedo 1,
+are filled from their neighbours and pass through unfiltered, as in ``wskp`` (:mod:`mcdenoise.models.emitters`). Inputs are edge-padded to a multiple of
 ``2**(levels-1)`` and the output cropped back, so any H, W works.
 """
 
@@ -22,7 +22,7 @@ from torch import nn
 
 from mcdenoise.models.blocks import PointwiseConv
 from mcdenoise.models.base import Denoiser, register_model
-from mcdenoise.models.emitters import emitter_mask, pass_through
+from mcdenoise.models.emitters import emitter_mask, fill_emitters, pass_through
 from mcdenoise.models.wskp import _PAPER, INPUT_CHANNELS, wskp_input
 from mcdenoise.ops.importance import fused_importance_filter
 from mcdenoise.ops.multiscale import downsample2, multires_blend
@@ -119,7 +119,8 @@ class WSKPMR(Denoiser):
         ]
 
     def forward(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
-        x, irr, albedo = wskp_input(batch, self.config.demod_threshold)
+        emitters = emitter_mask(batch["albedo"])
+        x, irr, albedo = wskp_input(fill_emitters(batch, emitters), self.config.demod_threshold)
         h, w = irr.shape[-2:]
         levels = self._levels(x)
         sizes = tuple(self.config.kernel_sizes)
@@ -132,7 +133,7 @@ class WSKPMR(Denoiser):
             imp, fus, alpha = levels[i]
             fine = fused_importance_filter(irrs[i], imp, fus, sizes=sizes)
             result = multires_blend(fine, result, alpha)  # type: ignore[arg-type]
-        return pass_through(result[..., :h, :w] * albedo, batch["radiance"], emitter_mask(batch["albedo"]))
+        return pass_through(result[..., :h, :w] * albedo, batch["radiance"], emitters)
 
 
 @register_model(
