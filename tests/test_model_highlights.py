@@ -309,3 +309,17 @@ def test_tiles_match_the_whole_image_around_lights(name: str) -> None:
     tiled, run = denoise_inputs(inputs, model, device="cpu", tile=16, progress=False)
     assert len(run.plan) > 1
     np.testing.assert_allclose(tiled, whole, rtol=1e-4, atol=1e-5)
+
+
+def test_overlap_grows_only_for_images_with_emitters() -> None:
+    """Catches the fill's extra tile overlap applied to every image (more work on all of ours,
+    which have no albedo above 1) or to none (seams at lights)."""
+    from mcdenoise.infer.run import emitter_reach
+    from mcdenoise.infer.sources import from_arrays
+
+    colour = np.ones((3, 8, 8), np.float32)
+    albedo = np.full((3, 8, 8), 1.0, np.float32)
+    assert emitter_reach(from_arrays(colour, albedo=albedo), ["radiance", "albedo"]) == 0
+    albedo[1, 2, 3] = 1.5
+    assert emitter_reach(from_arrays(colour, albedo=albedo), ["radiance", "albedo"]) == emitters.FILL_STEPS + 1
+    assert emitter_reach(from_arrays(colour, albedo=albedo), ["radiance"]) == 0  # a model that reads no albedo
