@@ -201,3 +201,18 @@ def test_is_cycles_and_colour_layer():
     assert blender.colour_layer(["V.Combined.R", "V.Noisy Image.R"]) == ("V.", "Noisy Image")
     assert blender.colour_layer(["V.Combined.R"]) == ("V.", "Combined")
     assert blender.colour_layer(["R"]) is None
+
+
+def test_blender_reference_without_noisy_image_converts(tmp_path):
+    """Catches a Blender reference (rendered with the denoiser off: the colour is Combined) refused
+    by image_from_exr with 'no radiance layer': the image folder's reference is Combined's RGB."""
+    from mcdenoise.data.convert import image_from_exr
+    from mcdenoise.data.format import read_image
+
+    noisy, ref = tmp_path / "noisy.exr", tmp_path / "ref.exr"
+    blender_exr(noisy)
+    ch = blender_exr(ref, noisy=False)
+    with pytest.warns(blender.BlenderNote):
+        folder = image_from_exr([noisy], tmp_path / "img", spp=8, reference=[ref], renderer="cycles")
+    got = read_image(folder).read_reference()["radiance"]
+    assert np.array_equal(got, np.stack([ch[f"ViewLayer.Combined.{c}"] for c in "RGB"]))

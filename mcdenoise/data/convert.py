@@ -1,7 +1,9 @@
 """Turn another renderer's EXR output (Cycles, Mitsuba aov, pbrt-v4, OIDN files) into an image folder.
 
-The per-pixel buffers are read through the one rename table (:mod:`mcdenoise.io.names`); such an
-image has no ``samples.bin``, so only pixel models can use it.
+The per-pixel buffers are read through the one rename table (:mod:`mcdenoise.io.names`), a Cycles
+file with Blender's conventions (:mod:`mcdenoise.io.blender`: ``Combined`` is the colour where there
+is no ``Noisy Image``, as in a reference rendered with the denoiser off); such an image has no
+``samples.bin``, so only pixel models can use it.
 """
 
 from __future__ import annotations
@@ -16,7 +18,8 @@ import numpy as np
 from mcdenoise.data.channels import CHANNELS, base_name, is_variance_name
 from mcdenoise.data.format import ImageMeta, write_image
 from mcdenoise.errors import FormatError
-from mcdenoise.io.exr import read_exr
+from mcdenoise.io import blender
+from mcdenoise.io.exr import read_exr, read_exr_header
 from mcdenoise.io.names import parse_oidn_filename
 
 __all__ = ["read_renderer_exrs", "image_from_exr"]
@@ -29,7 +32,12 @@ def read_renderer_exrs(paths: Sequence[str | os.PathLike], *, spp: int | None = 
     out: dict[str, np.ndarray] = {}
     size = None
     for p in paths:
-        layers = read_exr(p, spp=spp, unknown="drop")
+        header = read_exr_header(p)
+        if blender.is_cycles([c.name for c in header["channels"]]):
+            layers = blender.apply_conventions(read_exr(p, spp=spp), header, Path(p))
+            layers = {k: v for k, v in layers.items() if base_name(k) in CHANNELS}
+        else:
+            layers = read_exr(p, spp=spp, unknown="drop")
         for name, arr in layers.items():
             if name in out:
                 raise FormatError(p, f"layer {name!r} was already read from another file of this image")
