@@ -107,3 +107,22 @@ def test_precision_defaults_are_explained_in_both_helps(capsys: pytest.CaptureFi
         helps[name] = " ".join(capsys.readouterr().out.split())
     assert "float32 (default, unlike denoise's auto" in helps["eval"]
     assert "eval defaults to float32" in helps["denoise"]
+
+
+def test_unexpected_errors_are_one_line_unless_debug(monkeypatch, capsys) -> None:
+    """Catches issue 22's 'no command prints a traceback without --debug': an exception no command
+    translated (a bug) printed a traceback; it is one line now, and --debug still raises it."""
+    import pytest
+
+    from mcdenoise.cli import main as cli_main
+    from mcdenoise.cli import models as models_cmd
+
+    def boom(args):
+        raise ZeroDivisionError("bad arithmetic")
+
+    monkeypatch.setattr(models_cmd, "run", boom)
+    assert cli_main.main(["models"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "internal error: ZeroDivisionError: bad arithmetic" in err and "--debug" in err
+    with pytest.raises(ZeroDivisionError):
+        cli_main.main(["--debug", "models"])

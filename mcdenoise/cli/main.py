@@ -98,6 +98,12 @@ def main(argv: list[str] | None = None) -> int:
         print(f"mcdenoise {args.command}: error: {_one_line(str(os_error(e.filename or '?', e, 'writing or reading')))}",
               file=sys.stderr)
         return 1
+    except Exception as e:  # a bug of ours or a library's: still one line; --debug shows the traceback
+        if args.debug:
+            raise
+        print(f"mcdenoise {args.command}: internal error: {type(e).__name__}: {_one_line(str(e))} "
+              "(run again with --debug for the traceback)", file=sys.stderr)
+        return 1
 
 
 def _one_line(text: str) -> str:
