@@ -7,8 +7,9 @@
 INPUT is a multi-layer EXR in any naming of ``mcdenoise/io/names.py``, a colour EXR with its
 features in separate files (``--albedo``, ``--normal``, ``--depth``, as OIDN's tools take them),
 or an image folder of ``mcdenoise render`` (whose per-sample buffers feed the sample models).
-Without ``--model`` the best shipped model whose inputs are present runs; the command says which
-and which channels it read. The output holds the denoised radiance as top-level ``R, G, B``
+Without ``--model``: a shipped model whose inputs are present and whose card shows it beating OIDN
+2.5.1 high on the third-party validation scenes, else OIDN itself (``--model oidn``); the command
+says which, why, and which channels it read. The output holds the denoised radiance as top-level ``R, G, B``
 (float32); a Blender multi-layer EXR is written back whole (every pass, alpha and header
 attribute bit for bit) with the result added as the pass ``<ViewLayer>.Denoised``, or written into
 ``Combined`` with ``--replace-combined`` (``mcdenoise/io/blender.py``). Written atomically; the
@@ -31,8 +32,8 @@ def add_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("input", type=Path, help="EXR file or image folder of `mcdenoise render`")
     p.add_argument("-o", "--output", type=Path, required=True, help="denoised EXR to write")
     p.add_argument("--model", default=None,
-                   help="registered name (its shipped weights), .safetensors file or run folder; "
-                        "default: the best shipped model for the channels present")
+                   help="registered name (its shipped weights), oidn, .safetensors file or run folder; "
+                        "default: the best for the channels present, OIDN unless a shipped model beats it on the validation scenes")
     p.add_argument("--albedo", type=Path, default=None, help="albedo image (EXR) when INPUT is only the colour")
     p.add_argument("--normal", type=Path, default=None, help="normal image (EXR) when INPUT is only the colour")
     p.add_argument("--depth", type=Path, default=None, help="depth image (single-channel EXR)")
