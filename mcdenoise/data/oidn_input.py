@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["OIDN_CHANNEL", "oidn_for", "split_oidn"]
+__all__ = ["OIDN_CHANNEL", "oidn_for", "oidn_guides", "split_oidn"]
 
 OIDN_CHANNEL = "oidn"
 #: How far up from an image folder a dataset's manifest.json is looked for.
@@ -28,6 +28,13 @@ def _dataset_root(path: Path) -> Path | None:
         if (p / "manifest.json").is_file():
             return p
     return None
+
+
+def oidn_guides(pixels: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """The guides OIDN can use from ``pixels``: albedo when present, normal only beside albedo."""
+    if "albedo" not in pixels:
+        return {}
+    return {k: pixels[k] for k in ("albedo", "normal") if k in pixels}
 
 
 def split_oidn(names: list[str]) -> tuple[list[str], bool]:
@@ -62,7 +69,7 @@ def oidn_for(folder: object, k: int | None = None, *, quality: str = "high") -> 
     else:  # the same means as mcdenoise.data.tensors.input_arrays computes
         smp = folder.samples.read(names, samples=list(range(k)))  # type: ignore[attr-defined]
         px = {n: pixel_stats(v)[0] for n, v in smp.items()}
-    out = oidn_denoise(px["radiance"], px.get("albedo"), px.get("normal") if "albedo" in px else None, quality=quality)
+    out = oidn_denoise(px["radiance"], **oidn_guides(px), quality=quality)
     if cache is not None:
         cache.parent.mkdir(parents=True, exist_ok=True)
         tmp = cache.with_name(f".{cache.name}.{os.getpid()}.tmp")

@@ -10,6 +10,7 @@ import math
 import numpy as np
 import torch
 
+from mcdenoise.data.oidn_input import oidn_guides
 from mcdenoise.errors import McDenoiseError
 from mcdenoise.infer.memory import DEFAULT_MAX_MEMORY, MemoryCost, measure_cost
 from mcdenoise.infer.receptive import alignment, receptive_field
@@ -139,9 +140,7 @@ def denoise_inputs(inputs: Inputs, model: Denoiser, *, device: torch.device | st
     if isinstance(model, OIDNMethod):  # OIDN tiles by itself: the whole image, once
         add_oidn(inputs)
         inputs.warn_nonfinite()
-        used = ["radiance"] + [c for c in ("albedo", "normal") if c in inputs.pixels]
-        if "normal" in used and "albedo" not in used:
-            used.remove("normal")
+        used = ["radiance", *oidn_guides(inputs.pixels)]
         return inputs.pixels["oidn"], RunInfo(plan_tiles(inputs.height, inputs.width, receptive=0), device, used, 1)
     model = model.to(device).eval()
     kind = model.input_kind
@@ -176,9 +175,7 @@ def add_oidn(inputs: Inputs) -> None:
     inputs.ensure_pixels()
     if "oidn" in inputs.pixels:
         return
-    px = inputs.pixels
-    albedo = px.get("albedo")
-    inputs.pixels["oidn"] = oidn_denoise(px["radiance"], albedo, px.get("normal") if albedo is not None else None)
+    inputs.pixels["oidn"] = oidn_denoise(inputs.pixels["radiance"], **oidn_guides(inputs.pixels))
 
 
 def describe_plan(plan: TilePlan) -> str:
