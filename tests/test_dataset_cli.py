@@ -60,6 +60,19 @@ def test_dataset_valid_split(ds: Path) -> None:
         assert img.samples is not None and img.samples.spp == 2
 
 
+def test_variant_is_recorded(ds: Path) -> None:
+    """Catches issue 18: the Mitsuba variant a dataset was rendered with was recorded neither in
+    dataset.json nor in the manifest (whose hash names a run's data), so a GPU host's re-render
+    passed for the same data."""
+    from mcdenoise.data.dataset import read_manifest_settings
+    from mcdenoise.render._mitsuba import process_variant
+
+    variant = json.loads((ds / "dataset.json").read_text())["variant"]
+    assert variant == process_variant() and variant in read_image(ds / "proc_000000").meta.renderer
+    settings = read_manifest_settings(ds)
+    assert settings is not None and settings["variant"] == variant and settings["spp"] == 2
+
+
 def test_shards_are_disjoint_and_cover() -> None:
     parts = [set(shard_indices(10, i, 3)) for i in range(3)]
     assert set().union(*parts) == set(range(10))

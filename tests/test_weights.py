@@ -122,10 +122,12 @@ def test_card_commands_parse_back_to_the_settings_that_ran(run: Path, tmp_path: 
     keep = [k for k in a if k not in RUNTIME_FIELDS]
     assert {k: a[k] for k in keep} == {k: t[k] for k in keep}
 
-    cfg = DatasetConfig(count=7, seed=3, spp=16, ref_spp=0, width=64, height=48, views=2, fractions=(0.8, 0.2, 0.0))
+    cfg = DatasetConfig(count=7, seed=3, spp=16, ref_spp=0, width=64, height=48, views=2, fractions=(0.8, 0.2, 0.0),
+                        variant="cuda_ad_rgb")
     (tmp_path / "dataset.json").write_text(json.dumps(cfg.to_json()))
     ns = _parse(dataset_cli, dataset_command(tmp_path))
     assert (ns.count, ns.seed, ns.spp, ns.ref_spp, ns.size, ns.views, ns.split) == (7, 3, 16, 0, "64x48", 2, "0.8,0.2,0")
+    assert ns.variant == "cuda_ad_rgb"  # issue 18: the card's command omitted the variant
 
 
 def test_every_changed_setting_reaches_the_card_command(run: Path, tmp_path: Path) -> None:
@@ -137,7 +139,7 @@ def test_every_changed_setting_reaches_the_card_command(run: Path, tmp_path: Pat
     a = train_cli.config_from_args(args).to_json()
     for k in ("min_lr_fraction", "model_overrides", "init", "val_data", "warmup"):
         assert a[k] == doc["train"][k], k
-    cfg = DatasetConfig(count=2, world="rich", max_depth=8)
+    cfg = DatasetConfig(count=2, world="rich", max_depth=8, variant="llvm_ad_rgb")
     (tmp_path / "dataset.json").write_text(json.dumps(cfg.to_json()))
     ns = _parse(dataset_cli, dataset_command(tmp_path))
     assert (ns.world, ns.max_depth) == ("rich", 8)

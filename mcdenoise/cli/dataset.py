@@ -9,7 +9,9 @@ A rerun with the same options resumes: finished image folders are kept, leftover
 are removed. Shards (``--shard i/n``, e.g. one per array job) render disjoint images; copy their
 folders into one DIR and run ``--merge`` to rebuild the manifest. ``--views K`` renders K camera
 views of each scene from one scene load (its kernels compile once): the cheap way to more images.
-Mitsuba's CUDA variant is used where a GPU is present (``--variant`` overrides).
+Mitsuba's CUDA variant is used where a GPU is present (``--variant`` overrides); the variant used
+is recorded in dataset.json and manifest.json (a GPU renders other pixels than a CPU for the same
+seed), and a rerun must use the same one.
 """
 
 from __future__ import annotations
@@ -125,7 +127,7 @@ def run(args: argparse.Namespace) -> int:
         raise SceneError("--count N is required (or --merge to rebuild the manifest)")
     from mcdenoise.render._mitsuba import set_variant
 
-    set_variant(args.variant)
+    variant = set_variant(args.variant)
     w, h = parse_size(args.size)
     shard, shards = parse_shard(args.shard)
     from mcdenoise.cli.render import check_seed, max_bytes
@@ -135,6 +137,7 @@ def run(args: argparse.Namespace) -> int:
         count=args.count, seed=args.seed, spp=args.spp, ref_spp=args.ref_spp, width=w, height=h,
         frames=args.frames, max_depth=args.max_depth, kind=args.kind, fractions=parse_split(args.split),
         objects=parse_objects(args.objects), views=args.views, world=args.world,
+        variant=variant,
     )
     summary = render_dataset(args.out, cfg, shard=shard, shards=shards, progress=not args.no_progress,
                              log=lambda s: print(s, file=sys.stderr), nonfinite=args.nonfinite, max_bytes=max_bytes(args))

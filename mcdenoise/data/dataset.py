@@ -3,7 +3,13 @@
 ``manifest.json``::
 
     {"format": "mcdenoise-dataset", "version": 1,
+     "settings": {"spp": 16, "ref_spp": 1024, "width": 128, ..., "variant": "llvm_ad_rgb"},
      "images": [{"path": "scene_a/0000", "scene": "scene_a", "split": "train", ...}, ...]}
+
+``settings`` (procedural datasets whose dataset.json records the Mitsuba variant) holds every
+option that decides the pixels, so the manifest's SHA-256, which names the data a run trained on,
+changes with them and not only with the image list. Older manifests have no ``settings`` and keep
+their bytes (and hash) when rebuilt.
 
 Every image of a scene is in the same split (the writer and the reader both refuse otherwise), so
 no test scene leaks into training through another view or seed of it.
@@ -22,7 +28,7 @@ from mcdenoise.data.format import FORMAT_VERSION, META_FILE, ImageFolder, read_j
 from mcdenoise.errors import FormatError
 from mcdenoise.io.atomic import atomic_file
 
-__all__ = ["SPLITS", "MANIFEST_FILE", "assign_splits", "write_manifest", "read_manifest", "Dataset"]
+__all__ = ["SPLITS", "MANIFEST_FILE", "assign_splits", "write_manifest", "read_manifest", "read_manifest_settings", "Dataset"]
 
 SPLITS = ("train", "val", "test")
 MANIFEST_FILE = "manifest.json"
@@ -87,15 +93,20 @@ def _check_entries(where: str | os.PathLike, entries: list[dict[str, Any]]) -> N
             raise FormatError(where, f"scene {e['scene']!r} is in two splits ({prev} and {e['split']})")
 
 
-def write_manifest(root: str | os.PathLike, entries: list[dict[str, Any]]) -> Path:
+def write_manifest(root: str | os.PathLike, entries: list[dict[str, Any]], *,
+                   settings: dict[str, Any] | None = None) -> Path:
     """Write ``root/manifest.json`` atomically; refuses a scene in two splits or a bad entry.
 
     ``entries``: ``{"path": folder relative to root, "scene": id, "split": "train|val|test", ...}``
-    (extra keys are kept).
+    (extra keys are kept). ``settings``: the render settings of the images (the ``settings``
+    block); None writes none, as older versions did.
     """
     path = Path(root) / MANIFEST_FILE
     _check_entries(path, entries)
-    doc = {"format": "mcdenoise-dataset", "version": FORMAT_VERSION, "images": list(entries)}
+    doc: dict[str, Any] = {"format": "mcdenoise-dataset", "version": FORMAT_VERSION}
+    if settings is not None:
+        doc["settings"] = dict(settings)
+    doc["images"] = list(entries)
     with atomic_file(path) as tmp:
         tmp.write_text(json.dumps(doc, indent=1) + "\n")
     return path
@@ -112,6 +123,16 @@ def read_manifest(root: str | os.PathLike) -> list[dict[str, Any]]:
         raise FormatError(path, "no 'images' list")
     _check_entries(path, entries)
     return entries
+
+
+def read_manifest_settings(root: str | os.PathLike) -> dict[str, Any] | None:
+    """The ``settings`` block of ``root/manifest.json`` (None for a manifest without one)."""
+    path = Path(root) / MANIFEST_FILE
+    doc = read_json_document(path, "mcdenoise-dataset", "dataset manifest")
+    settings = doc.get("settings")
+    if settings is not None and not isinstance(settings, dict):
+        raise FormatError(path, "'settings' is not an object")
+    return settings
 
 
 class Dataset:

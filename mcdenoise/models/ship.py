@@ -32,7 +32,13 @@ __all__ = ["dataset_command", "train_command", "model_card", "card_markdown", "s
 
 
 def dataset_command(data_dir: str | Path) -> str:
-    """The ``mcdenoise dataset`` command that renders ``data_dir`` again, from its dataset.json."""
+    """The ``mcdenoise dataset`` command that renders ``data_dir`` again, from its dataset.json.
+
+    It states the Mitsuba variant (a GPU host's ``auto`` renders other pixels than the CPU's):
+    dataset.json's, else, for datasets made before it was recorded there, the one the images'
+    meta.json name."""
+    from mcdenoise.render.procedural_dataset import images_variant
+
     p = Path(data_dir) / "dataset.json"
     try:
         d = json.loads(p.read_text())
@@ -41,6 +47,11 @@ def dataset_command(data_dir: str | Path) -> str:
     size = d["width"] if d["width"] == d["height"] else f"{d['width']}x{d['height']}"
     args = ["mcdenoise", "dataset", "--out", str(data_dir), "--count", str(d["count"]), "--spp", str(d["spp"]),
             "--ref-spp", str(d["ref_spp"]), "--size", str(size), "--seed", str(d["seed"])]
+    variant = d.get("variant") or images_variant(data_dir)
+    if variant is None:
+        raise WeightsError(f"{p}: records no Mitsuba variant and no image names one: the dataset command "
+                           "cannot be stated")
+    args += ["--variant", variant]
     if d.get("views", 1) != 1:
         args += ["--views", str(d["views"])]
     if d.get("frames", 1) != 1:

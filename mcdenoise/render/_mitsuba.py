@@ -32,6 +32,8 @@ __all__ = [
     "select_variant",
     "set_variant",
     "active_variant",
+    "process_variant",
+    "variant_of_renderer",
 ]
 
 CPU_VARIANT = "llvm_ad_rgb"
@@ -123,6 +125,23 @@ def set_variant(name: str | None) -> str:
 def active_variant() -> str | None:
     """The variant in use, or None before the first render."""
     return VARIANT if _MI is not None else None
+
+
+def process_variant() -> str:
+    """The variant this process renders (or will render) with: the one in use, else the one
+    :func:`set_variant` fixed, else :func:`select_variant`'s choice. Imports nothing heavy."""
+    if _MI is not None:
+        return VARIANT
+    return _REQUESTED or select_variant(None)
+
+
+def variant_of_renderer(renderer: str) -> str | None:
+    """The variant named in an image's ``renderer`` string (``"mitsuba 3.9.1 (llvm_ad_rgb) / ..."``,
+    written by ``mcdenoise.render.image._renderer_string``), or None when it names none."""
+    import re
+
+    m = re.search(r"\(([a-z0-9_]+)\)", renderer or "")
+    return m.group(1) if m else None
 
 
 def mitsuba() -> ModuleType:

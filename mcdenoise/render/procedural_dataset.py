@@ -2,8 +2,10 @@
 
 Layout of a dataset folder ``DIR``::
 
-    dataset.json              the options it was made with (a rerun must agree with them)
-    manifest.json             image entries with their scene-level split (rebuilt, atomically)
+    dataset.json              the options it was made with, the Mitsuba variant included (a rerun
+                              must agree with them)
+    manifest.json             image entries with their scene-level split, and the options of
+                              dataset.json under "settings" (rebuilt, atomically)
     proc_000000/              image 0 (one frame), an image folder of the data format
     proc_000001/frame_000/    image 1 of a sequence dataset (``frames > 1``): one folder per frame
     proc_000002/view_001/     view 1 of scene 2 (``views > 1``): one folder per view
@@ -52,6 +54,9 @@ __all__ = [
     "finished_paths",
     "clean_partial",
     "rebuild_manifest",
+    "recorded_variant",
+    "images_variant",
+    "RENDER_VARIANTS",
     "render_dataset",
     "render_procedural_image",
 ]
@@ -63,6 +68,8 @@ _SUB = re.compile(r"^(frame|view)_(\d{3,})$")
 #: one version (2: preview on the loaded scene with the input's settings; 1: 32-pixel preview
 #: with Mitsuba's path integrator); a dataset.json without the field was made by version 1.
 GENERATOR = 2
+#: Mitsuba variants a dataset may record (``mcdenoise.render._mitsuba.VARIANTS`` less ``auto``).
+RENDER_VARIANTS = ("llvm_ad_rgb", "cuda_ad_rgb")
 #: Camera draws per extra view before falling back to the drawn (already checked) camera.
 VIEW_ATTEMPTS = 8
 
@@ -88,6 +95,10 @@ class DatasetConfig:
             never mixes images of two versions into one dataset.
         world: ``classic`` (the original generator) or ``rich`` (window-lit rooms, small bright
             emitters, night scenes, exposure over 2.3 decades: issue 19).
+        variant: the Mitsuba variant the images are rendered with (``llvm_ad_rgb`` on a CPU,
+            ``cuda_ad_rgb`` on a GPU: they give other pixels for the same seed). None: the
+            process's variant, recorded in dataset.json when the dataset is created; a
+            dataset.json written before the field existed has none (its images' meta.json name it).
     """
 
     count: int
@@ -104,6 +115,7 @@ class DatasetConfig:
     views: int = 1
     generator: int = GENERATOR
     world: str = "classic"
+    variant: str | None = None
 
     def check(self) -> None:
         from mcdenoise.render.procedural import KINDS
@@ -124,6 +136,8 @@ class DatasetConfig:
 
         if self.world not in WORLDS:
             raise SceneError(f"dataset: world {self.world!r} is not one of {', '.join(WORLDS)}")
+        if self.variant is not None and self.variant not in RENDER_VARIANTS:
+            raise SceneError(f"dataset: Mitsuba variant {self.variant!r} is not one of {', '.join(RENDER_VARIANTS)}")
         if self.kind is not None and self.kind not in KINDS:
             raise SceneError(f"dataset: kind {self.kind!r} is not one of {', '.join(KINDS)}")
         lo, hi = self.objects
@@ -137,7 +151,14 @@ class DatasetConfig:
         d = asdict(self)
         d["fractions"] = list(self.fractions)
         d["objects"] = list(self.objects)
+        if d["variant"] is None:  # not recorded: the file keeps the form of older versions
+            del d["variant"]
         return {"format": "mcdenoise-procedural-dataset", "version": 1, **d}
+
+    def settings(self) -> dict[str, Any]:
+        """Every option that decides the pixels (the variant included): the ``settings`` block
+        of manifest.json, so the manifest's SHA-256 (which names a run's data) covers them."""
+        return {k: v for k, v in self.to_json().items() if k not in ("format", "version")}
 
     @classmethod
     def from_json(cls, d: dict[str, Any], where: Path) -> "DatasetConfig":
@@ -182,12 +203,47 @@ def _read_config(root: Path) -> DatasetConfig | None:
     return DatasetConfig.from_json(read_json_document(path), path)
 
 
+def images_variant(root: str | Path) -> str | None:
+    """The Mitsuba variant named by the first image's meta.json under ``root`` (None: no image,
+    or one that names none). Datasets made before dataset.json recorded the variant."""
+    from mcdenoise.render._mitsuba import variant_of_renderer
+
+    root = Path(root)
+    for meta in sorted([*root.glob("proc_*/meta.json"), *root.glob("proc_*/*_*/meta.json")]):
+        try:
+            doc = json.loads(meta.read_text())
+        except (OSError, ValueError):
+            continue
+        found = variant_of_renderer(str(doc.get("renderer", ""))) if isinstance(doc, dict) else None
+        if found is not None:
+            return found
+    return None
+
+
+def recorded_variant(root: str | Path) -> str | None:
+    """The variant a procedural dataset was rendered with: its dataset.json's, else (older
+    datasets) its images', else None."""
+    cfg = _read_config(Path(root))
+    if cfg is not None and cfg.variant is not None:
+        return cfg.variant
+    return images_variant(root)
+
+
 def _write_config(root: Path, cfg: DatasetConfig) -> None:
-    """Create ``dataset.json``, or check that an existing one holds the same options."""
+    """Create ``dataset.json``, or check that an existing one holds the same options.
+
+    A dataset.json without a variant (written by an older version) is left as it is, so its
+    manifest, and the manifest hash runs trained on it recorded, stay the same; its images must
+    then name the variant asked for (when they name one)."""
     old = _read_config(root)
     if old is not None:
         diff = [f"{f.name}: {getattr(old, f.name)!r} there, {getattr(cfg, f.name)!r} asked"
-                for f in fields(cfg) if getattr(old, f.name) != getattr(cfg, f.name)]
+                for f in fields(cfg) if getattr(old, f.name) != getattr(cfg, f.name)
+                and not (f.name == "variant" and old.variant is None)]
+        if old.variant is None and cfg.variant is not None:
+            there = images_variant(root)
+            if there is not None and there != cfg.variant:
+                diff.append(f"variant: {there!r} in its images, {cfg.variant!r} asked (--variant {there})")
         if diff:
             raise FormatError(root / CONFIG_FILE, "this dataset was made with other options (" + "; ".join(diff)
                               + "); rerun with the same options or use another --out")
@@ -260,6 +316,9 @@ def rebuild_manifest(root: str | Path, done: set[str] | None = None) -> Path:
         raise FormatError(root / CONFIG_FILE, "no such file (not a procedural dataset folder?)")
     done = finished_paths(root, cfg) if done is None else done
     splits = assign_splits([scene_name(i) for i in range(cfg.count)], cfg.fractions, cfg.seed)
+    # Datasets whose dataset.json records no variant (older versions) keep the old manifest
+    # form, byte for byte: runs trained on them recorded its SHA-256 and resume against it.
+    settings = cfg.settings() if cfg.variant is not None else None
     entries = []
     for path in sorted(done):
         scene = path.split("/", 1)[0]
@@ -268,7 +327,7 @@ def rebuild_manifest(root: str | Path, done: set[str] | None = None) -> Path:
             kind, num = path.rsplit("/", 1)[1].split("_")
             e[kind] = int(num)
         entries.append(e)
-    return write_manifest(root, entries)
+    return write_manifest(root, entries, settings=settings)
 
 
 def _settings(cfg: DatasetConfig, seed: int, *, ps: Any = None, camera: Any = None, camera_end: Any = None) -> Any:
@@ -422,8 +481,15 @@ def render_dataset(
     Rebuilds the manifest after each image and at the end (from a fresh scan, which picks up
     folders other shards wrote meanwhile).
     """
+    from dataclasses import replace
+
+    from mcdenoise.render._mitsuba import process_variant, set_variant
+
     root = Path(root)
     cfg.check()
+    # The variant is fixed here (before any render) and recorded: a GPU renders other pixels.
+    cfg = replace(cfg, variant=cfg.variant or process_variant())
+    set_variant(cfg.variant)
     if root.exists() and not root.is_dir():
         raise SceneError(f"{root}: exists and is not a folder")
     indices = shard_indices(cfg.count, shard, shards)

@@ -214,7 +214,10 @@ RUNTIME_FIELDS = frozenset({"data", "val_data", "device", "workers", "threads", 
 
 
 def manifest_hash(data_dir: str | Path) -> str:
-    """SHA-256 of the dataset's ``manifest.json`` bytes: names the exact image list trained on."""
+    """SHA-256 of the dataset's ``manifest.json`` bytes: names the exact image list trained on and,
+    for procedural datasets that record their Mitsuba variant, the render settings (spp, size,
+    seed, depth, world, generator version, variant: the manifest's ``settings`` block). Manifests
+    of older datasets have no such block and keep their bytes, so runs resume against them."""
     return hashlib.sha256((Path(data_dir) / "manifest.json").read_bytes()).hexdigest()
 
 

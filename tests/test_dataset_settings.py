@@ -1,0 +1,141 @@
+"""Issue 18 item "model cards must reproduce": a procedural dataset records the Mitsuba variant it
+was rendered with (dataset.json and the manifest), the manifest hash a run resumes against covers
+the render settings, older datasets keep their manifest hash, and model cards state the variant.
+No rendering: the manifest is rebuilt from dataset.json and a list of finished folders."""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import shlex
+from pathlib import Path
+
+import pytest
+
+from mcdenoise.cli import dataset as dataset_cli
+from mcdenoise.data.dataset import read_manifest, read_manifest_settings
+from mcdenoise.errors import FormatError
+from mcdenoise.models.ship import dataset_command
+from mcdenoise.models.weights import SHIPPED_DIR, WeightsError
+from mcdenoise.render import _mitsuba as M
+from mcdenoise.render.procedural_dataset import (
+    DatasetConfig,
+    _write_config,
+    rebuild_manifest,
+    recorded_variant,
+)
+from mcdenoise.train.config import manifest_hash
+
+DONE = {"proc_000000", "proc_000001", "proc_000002"}
+
+
+def _dataset(root: Path, cfg: DatasetConfig) -> Path:
+    root.mkdir(parents=True, exist_ok=True)
+    (root / "dataset.json").write_text(json.dumps(cfg.to_json(), indent=1) + "\n")
+    rebuild_manifest(root, DONE)
+    return root
+
+
+def _old_manifest_bytes(root: Path) -> bytes:
+    """manifest.json exactly as versions before the settings block wrote it."""
+    doc = {"format": "mcdenoise-dataset", "version": 1, "images": read_manifest(root)}
+    return (json.dumps(doc, indent=1) + "\n").encode()
+
+
+def _meta(folder: Path, variant: str) -> None:
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / "meta.json").write_text(json.dumps({"renderer": f"mitsuba 3.9.1 ({variant}) / mcdenoise 0.1.0"}))
+
+
+def test_manifest_hash_covers_render_settings_and_variant(tmp_path: Path) -> None:
+    """Bug caught (issue 18): the manifest hash covered only paths and splits, so a run resumed (or
+    a card claimed reproduction) on data rendered with other spp, size, depth or another Mitsuba
+    variant; and the variant was recorded nowhere."""
+    base = DatasetConfig(count=3, seed=5, spp=8, ref_spp=64, width=32, height=32, variant="llvm_ad_rgb")
+    a = _dataset(tmp_path / "a", base)
+    settings = read_manifest_settings(a)
+    assert settings is not None and settings["variant"] == "llvm_ad_rgb" and settings["spp"] == 8
+    assert json.loads((a / "dataset.json").read_text())["variant"] == "llvm_ad_rgb"
+    for i, change in enumerate([{"spp": 16}, {"ref_spp": 128}, {"width": 48}, {"max_depth": 8}, {"world": "rich"},
+                                {"variant": "cuda_ad_rgb"}]):
+        b = _dataset(tmp_path / f"b{i}", DatasetConfig(**{**base.__dict__, **change}))
+        assert read_manifest(b) == read_manifest(a)  # same images and splits ...
+        assert manifest_hash(b) != manifest_hash(a), change  # ... yet other data
+
+
+def test_old_datasets_keep_their_manifest_hash(tmp_path: Path) -> None:
+    """Bug caught: recording the settings changed the manifest of datasets made before, so every
+    run on data/rich_ref etc. (campaigns/c1) would refuse to resume ('manifest.json differs').
+    A dataset.json with no variant rebuilds the old manifest byte for byte."""
+    old = _dataset(tmp_path / "old", DatasetConfig(count=3, seed=5, spp=8, ref_spp=64, width=32, height=32))
+    assert "variant" not in json.loads((old / "dataset.json").read_text())
+    assert read_manifest_settings(old) is None
+    assert manifest_hash(old) == hashlib.sha256(_old_manifest_bytes(old)).hexdigest()
+
+
+def test_resuming_an_old_dataset_keeps_it_and_checks_the_images_variant(tmp_path: Path) -> None:
+    """Bug caught: a rerun of a dataset made before the variant was recorded refused ('variant:
+    None there') or rewrote dataset.json (changing its manifest hash); and a rerun with another
+    variant than its images mixed CPU and GPU pixels in one dataset."""
+    cfg = DatasetConfig(count=3, seed=5, spp=8, ref_spp=64, width=32, height=32)
+    old = _dataset(tmp_path / "old", cfg)
+    before = (old / "dataset.json").read_bytes()
+    _meta(old / "proc_000000", "llvm_ad_rgb")
+    _write_config(old, DatasetConfig(**{**cfg.__dict__, "variant": "llvm_ad_rgb"}))
+    assert (old / "dataset.json").read_bytes() == before
+    assert recorded_variant(old) == "llvm_ad_rgb"
+    with pytest.raises(FormatError, match="variant") as e:
+        _write_config(old, DatasetConfig(**{**cfg.__dict__, "variant": "cuda_ad_rgb"}))
+    assert "\n" not in str(e.value)
+    # A dataset that records its variant refuses a rerun with another one.
+    new = _dataset(tmp_path / "new", DatasetConfig(**{**cfg.__dict__, "variant": "llvm_ad_rgb"}))
+    with pytest.raises(FormatError, match="variant"):
+        _write_config(new, DatasetConfig(**{**cfg.__dict__, "variant": "cuda_ad_rgb"}))
+
+
+def test_render_dataset_fixes_the_process_variant(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Bug caught: dataset.json written with no variant (or 'auto') by a caller that leaves it
+    unset: the recorded variant is the one the process resolves, never 'auto'."""
+    monkeypatch.delenv("MCDENOISE_VARIANT", raising=False)
+    monkeypatch.setattr(M, "_MI", None)
+    monkeypatch.setattr(M, "_REQUESTED", None)
+    monkeypatch.setattr(M, "cuda_available", lambda: False)
+    assert M.process_variant() == "llvm_ad_rgb"
+    monkeypatch.setattr(M, "_REQUESTED", "cuda_ad_rgb")
+    assert M.process_variant() == "cuda_ad_rgb"
+    assert M.variant_of_renderer("mitsuba 3.9.1 (cuda_ad_rgb) / mcdenoise 0.1.0") == "cuda_ad_rgb"
+    assert M.variant_of_renderer("") is None
+    with pytest.raises(Exception, match="variant"):
+        DatasetConfig(count=1, variant="auto").check()
+
+
+def _parse(cmd: str) -> argparse.Namespace:
+    p = argparse.ArgumentParser()
+    dataset_cli.add_parser(p)
+    argv = shlex.split(cmd)
+    assert argv[:2] == ["mcdenoise", "dataset"]
+    return p.parse_args(argv[2:])
+
+
+def test_card_dataset_command_states_the_variant(tmp_path: Path) -> None:
+    """Bug caught (issue 18): a card's dataset command omitted the Mitsuba variant, so on a GPU host
+    it rendered other pixels (auto = cuda_ad_rgb). Old datasets take it from their images; a
+    dataset naming none cannot state its command."""
+    new = _dataset(tmp_path / "new", DatasetConfig(count=3, spp=4, variant="cuda_ad_rgb"))
+    assert _parse(dataset_command(new)).variant == "cuda_ad_rgb"
+    old = _dataset(tmp_path / "old", DatasetConfig(count=3, spp=4))
+    with pytest.raises(WeightsError, match="variant"):
+        dataset_command(old)
+    _meta(old / "proc_000001", "llvm_ad_rgb")
+    assert _parse(dataset_command(old)).variant == "llvm_ad_rgb"
+
+
+def test_shipped_cards_state_the_variant_they_were_rendered_with() -> None:
+    """Bug caught (issue 18): the shipped cards' dataset commands omitted the variant (they were
+    rendered on a CPU: llvm_ad_rgb, what `--variant auto` picks without a GPU)."""
+    cards = sorted(SHIPPED_DIR.glob("*.json"))
+    assert cards
+    for path in cards:
+        cmd = json.loads(path.read_text())["dataset"]["command"]
+        assert _parse(cmd).variant == "llvm_ad_rgb", path.name
