@@ -116,3 +116,68 @@ def test_crops_for_the_combiner_use_the_first_samples(tmp_path: Path) -> None:
         n = len(c.samples)
         assert c.samples == list(range(n)) and c.target_samples == list(range(n, 8))
         assert c.inputs["oidn"].shape == (3, 8, 8)
+
+
+def _randomised_ens(seed: int = 0) -> torch.nn.Module:
+    torch.manual_seed(seed)
+    model = build_model("combine", "ens").eval()
+    with torch.no_grad():
+        for p in model.parameters():
+            p.normal_(0, 0.5)
+    return model
+
+
+def test_the_prefiltered_combiner_stays_within_its_three_candidates() -> None:
+    """Catches the third candidate (``oidn_pf``) left out of the weights or the normalisation: the
+    output would leave the per-pixel range of OIDN, prefiltered OIDN and the clamped noisy mean."""
+    model = _randomised_ens()
+    assert model.required_channels()[:3] == ["oidn", "oidn_pf", "radiance"]
+    batch = synthetic_batch(model, height=21, width=18, generator=torch.Generator().manual_seed(4))
+    batch["oidn_pf"] = batch["oidn_pf"] * 5  # far from the others: its weight shows
+    with torch.no_grad():
+        out, w = model(batch), model.weights(batch)
+        cands = torch.stack(model.candidates(batch))
+    assert w.shape[1] == 3 and torch.allclose(w.sum(1), torch.ones_like(w[:, 0]))
+    assert (out <= cands.amax(0) * (1 + 1e-5) + 1e-6).all() and (out >= cands.amin(0) * (1 - 1e-5) - 1e-6).all()
+    assert float(w[:, 1].mean()) > 1e-3  # the prefiltered candidate is really used
+    const = {k: (torch.full_like(v, 0.3) if k in ("oidn", "oidn_pf", "radiance") else v) for k, v in batch.items()}
+    with torch.no_grad():
+        torch.testing.assert_close(model(const), torch.full_like(out, 0.3), rtol=1e-5, atol=1e-6)
+
+
+def test_every_parameter_of_the_prefiltered_combiner_gets_a_gradient() -> None:
+    """Catches features of the third candidate that are computed but never reach the network."""
+    model = build_model("combine", "ens").train()
+    batch = synthetic_batch(model, height=16, width=16, generator=torch.Generator().manual_seed(1))
+    for k in ("oidn", "oidn_pf", "radiance"):
+        batch[k] = batch[k].abs() + 0.1
+    model(batch).square().mean().backward()
+    assert all(p.grad is not None and bool(p.grad.abs().sum() > 0) for p in model.parameters())
+    # the prefiltered features move the weights: the same batch with another oidn_pf gives other weights
+    with torch.no_grad():
+        w1 = model.weights(batch)
+        w2 = model.weights({**batch, "oidn_pf": batch["oidn_pf"] * 3})
+    assert not torch.allclose(w1, w2)
+
+
+def test_prefiltered_oidn_channel_is_cached_apart_from_the_plain_one(tmp_path: Path) -> None:
+    """Catches the two derived OIDN channels sharing one cache file (a combiner would get the same
+    image twice) or ``oidn_pf`` computed without prefiltering."""
+    from train_tiny_data import make_tiny_dataset
+
+    from mcdenoise.data.dataset import Dataset
+    from mcdenoise.data.oidn_input import oidn_for
+    from mcdenoise.data.tensors import input_arrays
+    from mcdenoise.eval.oidn import oidn_denoise, version
+
+    root = make_tiny_dataset(tmp_path / "d")
+    im = Dataset(root).images("train")[0]
+    plain, pf = oidn_for(im, 3), oidn_for(im, 3, channel="oidn_pf")
+    px = input_arrays(im, ["radiance", "albedo", "normal"], "pixels", spp=3)
+    np.testing.assert_array_equal(pf, oidn_denoise(px["radiance"], px["albedo"], px["normal"], prefilter="fast"))
+    assert not np.array_equal(plain, pf)
+    cache = root / ".cache" / f"oidn-{version()}"
+    assert len(list(cache.rglob("high_spp3.npy"))) == 1 and len(list(cache.rglob("high_pf-fast_spp3.npy"))) == 1
+    got = input_arrays(im, ["radiance", "oidn", "oidn_pf"], "pixels", spp=3)
+    np.testing.assert_array_equal(got["oidn_pf"], pf)
+    np.testing.assert_array_equal(got["oidn"], plain)

@@ -219,3 +219,36 @@ def test_threads_pin_the_device_and_keep_the_pixels() -> None:
     assert oidn_denoise(small, threads=1).shape == (3, 17, 23)
     with pytest.raises(OIDNError, match="threads must be a positive integer, got 0"):
         oidn_denoise(noisy, threads=0)
+
+
+@needs_oidn
+def test_prefilter_mode_is_prefiltered_guides_passed_as_clean() -> None:
+    """Catches a ``prefilter`` that is ignored (the output would equal the plain run), one that
+    prefilters but does not set cleanAux, or one that denoises the guides with the colour filter."""
+    from mcdenoise.eval.oidn import oidn_prefilter
+
+    clean, noisy = _noisy(4)
+    rng = np.random.default_rng(5)
+    albedo, normal = _guides(noisy.shape)
+    albedo = (albedo * rng.uniform(0.5, 1.5, albedo.shape)).astype(np.float32)  # noisy guides
+    normal = np.clip(normal + rng.normal(0, 0.3, normal.shape), -1, 1).astype(np.float32)
+    got = oidn_denoise(noisy, albedo, normal, prefilter="fast", threads=1)
+    al, nr = oidn_prefilter(albedo, "albedo", quality="fast", threads=1), oidn_prefilter(normal, "normal", quality="fast", threads=1)
+    _assert_same_denoise(got, oidn_denoise(noisy, al, nr, clean_aux=True, threads=1))
+    assert np.abs(got - oidn_denoise(noisy, albedo, normal, threads=1)).max() > 1e-3 * np.abs(got).max()
+    # the prefiltered albedo is closer to the clean one than the noisy albedo was
+    clean_albedo = _guides(noisy.shape)[0]
+    assert np.abs(al - clean_albedo).mean() < 0.5 * np.abs(albedo - clean_albedo).mean()
+    assert nr.min() >= -1 and nr.max() <= 1 and al.dtype == np.float32 and al.shape == albedo.shape
+
+
+@needs_oidn
+def test_prefilter_refuses_what_it_cannot_do() -> None:
+    """Catches a bad guide kind or quality reaching OIDN (an opaque library error, or none)."""
+    from mcdenoise.eval.oidn import oidn_prefilter
+
+    _, noisy = _noisy(0)
+    with pytest.raises(OIDNError, match="albedo or normal"):
+        oidn_prefilter(noisy, "color")
+    with pytest.raises(OIDNError, match="prefilter quality"):
+        oidn_denoise(noisy, *_guides(noisy.shape), prefilter="best")

@@ -43,7 +43,8 @@ def add_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--spp", type=int, nargs="*", default=[4, 8, 16], metavar="K",
                    help="input sample counts: the first K stored samples (default 4 8 16)")
     p.add_argument("--oidn", nargs="+", default=["high", "fast"], metavar="QUALITY",
-                   help="OIDN qualities: high, balanced, fast (default high fast)")
+                   help="OIDN qualities: high, balanced, fast, each optionally with -pf: guides prefiltered "
+                        "by OIDN first, its best mode for noisy guides (default high fast)")
     p.add_argument("--no-oidn", action="store_true", help="leave OIDN out")
     p.add_argument("--no-classic", action="store_true", help="leave the NL-means filter out")
     p.add_argument("--max-images", type=int, help="at most N images per data folder")
@@ -94,14 +95,12 @@ def run(args: argparse.Namespace) -> int:
         progress=not args.no_progress,
         command=command,
     )
-    from mcdenoise.eval.ranking import same_images, summary_text
+    from mcdenoise.eval.ranking import terminal_summary
 
     for note in doc["notes"]:
         if "labelled" in note:
             print(f"note: {note}", file=sys.stderr, flush=True)
-    print(summary_text(doc))
-    if any(s["subset"] == "dof_motion" for s in doc["summary"]) and not same_images(doc):
-        print("\nDepth-of-field / motion-blur images only:\n" + summary_text(doc, "dof_motion").rsplit("\n", 1)[0])
+    print(terminal_summary(doc))
     sys.stdout.flush()
     n = len({r["image"] for r in doc["rows"]})
     print(f"{args.out}: {n} images x spp {', '.join(map(str, doc['config']['spp']))}, "

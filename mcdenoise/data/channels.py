@@ -130,6 +130,8 @@ def _builtin() -> None:
     # Derived on demand, never stored in an image folder (mcdenoise.data.oidn_input).
     c(Channel("oidn", RGB, "Open Image Denoise 2.5.1 'high' output for the same input samples (colour, albedo, "
                            "normal); computed from the other channels, cached beside a dataset", per_sample=False))
+    c(Channel("oidn_pf", RGB, "Open Image Denoise 2.5.1 'high' output with the albedo and normal guides prefiltered "
+                              "by OIDN 'fast' and passed as clean; derived like 'oidn'", per_sample=False))
 
 
 _builtin()

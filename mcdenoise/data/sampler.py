@@ -35,7 +35,7 @@ import numpy as np
 from mcdenoise.color import luminance
 from mcdenoise.data.channels import base_name, is_variance_name
 from mcdenoise.data.format import ImageFolder, pixel_stats
-from mcdenoise.data.oidn_input import OIDN_CHANNEL, oidn_for, split_oidn
+from mcdenoise.data.oidn_input import oidn_for, split_oidn
 
 __all__ = ["Crop", "CropSampler", "importance_map", "window_scores", "SAMPLINGS", "TARGETS"]
 
@@ -300,7 +300,9 @@ class CropSampler:
             inputs = {c: stats[c] for c in channels}
         if want_oidn:
             y, x, h, w = box
-            inputs[OIDN_CHANNEL] = np.ascontiguousarray(oidn_for(im, len(idx) if idx is not None else None)[:, y : y + h, x : x + w])
+            for ch in want_oidn:
+                full = oidn_for(im, len(idx) if idx is not None else None, channel=ch)
+                inputs[ch] = np.ascontiguousarray(full[:, y : y + h, x : x + w])
         if held is not None:
             tgt = im.samples.read(self.reference, crop=box, samples=held)
             ref = {k: v.mean(axis=0, dtype=np.float64).astype(np.float32) for k, v in tgt.items()}

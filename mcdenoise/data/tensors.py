@@ -41,12 +41,13 @@ def input_arrays(
             holds the same numbers.
         spp: ``k``, 1 <= k <= the stored spp; None = all stored samples.
     """
-    from mcdenoise.data.oidn_input import OIDN_CHANNEL, oidn_for, split_oidn
+    from mcdenoise.data.oidn_input import oidn_for, split_oidn
 
     names, want_oidn = split_oidn([c for c in channels if c != "scene_features"])
     if want_oidn:
         out = input_arrays(folder, names, input_kind, spp=spp)
-        out[OIDN_CHANNEL] = oidn_for(folder, spp)
+        for ch in want_oidn:
+            out[ch] = oidn_for(folder, spp, channel=ch)
         return out
     total = folder.meta.spp
     k = total if spp is None else int(spp)

@@ -171,8 +171,9 @@ def build_methods(models: Sequence[str | os.PathLike], oidn: Sequence[str], clas
         from mcdenoise.eval.oidn import QUALITIES, _pyoidn
 
         for q in oidn:
-            if q not in QUALITIES:
-                raise EvalError(f"OIDN quality {q!r}: expected one of {', '.join(QUALITIES)}")
+            if q.removesuffix("-pf") not in QUALITIES:
+                raise EvalError(f"OIDN quality {q!r}: expected one of {', '.join(QUALITIES)}, "
+                                f"each optionally with -pf (guides prefiltered by OIDN first)")
         _pyoidn()  # one-line OIDNError now rather than after the first image
         methods += [OIDNMethod(q, oidn_threads) for q in dict.fromkeys(oidn)]
     if classic:

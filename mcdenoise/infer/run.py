@@ -10,7 +10,7 @@ import math
 import numpy as np
 import torch
 
-from mcdenoise.data.oidn_input import oidn_guides
+from mcdenoise.data.oidn_input import OIDN_CHANNELS, oidn_guides
 from mcdenoise.errors import McDenoiseError
 from mcdenoise.infer.memory import DEFAULT_MAX_MEMORY, MemoryCost, measure_cost
 from mcdenoise.infer.receptive import alignment, receptive_field
@@ -148,8 +148,7 @@ def denoise_inputs(inputs: Inputs, model: Denoiser, *, device: torch.device | st
     names = [c for c in model.required_channels() if c != "scene_features"]
     plan = tile_plan(model, inputs.height, inputs.width, spp=spp, device=device, tile=tile, max_memory=max_memory,
                      reach=emitter_reach(inputs, names))
-    if "oidn" in names:
-        add_oidn(inputs)
+    add_oidn(inputs, [n for n in names if n in OIDN_CHANNELS])
 
     def read(t: Any) -> dict[str, torch.Tensor]:
         return inputs.batch(names, kind, t.window, t.core, device)
@@ -167,15 +166,19 @@ def denoise_inputs(inputs: Inputs, model: Denoiser, *, device: torch.device | st
     return out, RunInfo(plan, device, names, spp)
 
 
-def add_oidn(inputs: Inputs) -> None:
-    """Put OIDN 2.5.1's output for the whole image into ``inputs.pixels["oidn"]`` (a combiner's
-    candidate): run once on the full image, before tiling, as a user would run OIDN."""
+def add_oidn(inputs: Inputs, channels: list[str] | tuple[str, ...] = ("oidn",)) -> None:
+    """Put OIDN 2.5.1's outputs for the whole image into ``inputs.pixels[ch]`` for each derived
+    channel ``ch`` (a combiner's candidates, see :data:`OIDN_CHANNELS`): run once on the full
+    image, before tiling, as a user would run OIDN."""
     from mcdenoise.eval.oidn import oidn_denoise
 
-    inputs.ensure_pixels()
-    if "oidn" in inputs.pixels:
+    if not channels:
         return
-    inputs.pixels["oidn"] = oidn_denoise(inputs.pixels["radiance"], **oidn_guides(inputs.pixels))
+    inputs.ensure_pixels()
+    for ch in channels:
+        if ch not in inputs.pixels:
+            inputs.pixels[ch] = oidn_denoise(inputs.pixels["radiance"], **oidn_guides(inputs.pixels),
+                                             prefilter=OIDN_CHANNELS[ch])
 
 
 def describe_plan(plan: TilePlan) -> str:

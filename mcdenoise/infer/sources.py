@@ -27,6 +27,7 @@ import numpy as np
 import torch
 
 from mcdenoise.data.channels import CHANNELS, SCENE_FEATURES, base_name, num_components
+from mcdenoise.data.oidn_input import OIDN_CHANNELS
 from mcdenoise.errors import FormatError, McDenoiseError
 
 __all__ = ["NonFiniteInputWarning", "InputError", "Inputs", "from_exr", "from_folder", "from_arrays"]
@@ -158,7 +159,7 @@ class Inputs:
             return set(self.samples.channels) if self.samples is not None else set()
         have = set(self.pixel_names) if self.loader is not None else set(self.pixels)
         if "radiance" in have:
-            have.add("oidn")  # derived on demand (mcdenoise.infer.run.add_oidn)
+            have.update(OIDN_CHANNELS)  # derived on demand (mcdenoise.infer.run.add_oidn)
         return have
 
     def batch(self, names: list[str], kind: str, window: Box, core: Box,

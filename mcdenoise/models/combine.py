@@ -1,7 +1,8 @@
 """A learned combiner of candidate estimates (issue 20; design in docs/models/combine.md).
 
 The candidates are images of the same pixels: OIDN 2.5.1's output (channel ``oidn``, computed by
-the data side from the same input) and the noisy mean (``radiance``). A small U-Net looks at
+the data side from the same input), with ``prefiltered`` also OIDN's output on guides it
+prefiltered itself (``oidn_pf``), and the noisy mean (``radiance``). A small U-Net looks at
 both, the guides and how far OIDN strays from the noisy mean relative to its variance, and
 predicts per pixel one softmax over ``k x k`` taps of every candidate. The output is that weighted
 sum:
@@ -59,14 +60,23 @@ class CombineConfig:
     use_variance: bool = False
     """Read the noisy pixel's variance (image folders with samples have it; Blender, pbrt and
     OIDN-style files do not). Off: the pixel-only combiner, usable on every input."""
+    prefiltered: bool = False
+    """Add a third candidate, ``oidn_pf``: OIDN with its guides prefiltered by OIDN first and
+    passed as clean (OIDN's best mode for noisy guides). Measured before training (OIDN 2.5.1,
+    ``scripts/oidn_variants_probe.py``): better than plain OIDN on most images, yet 13-30x worse in
+    relMSE on one rich-world image of eight, where a bright bulb bleeds into a dark sky whose clean
+    guides show no edge -- a per-pixel choice between the two is what the network learns."""
 
 
-#: Candidate channels, in the order of the predicted weights.
+#: Candidate channels, in the order of the predicted weights (``prefiltered``: PF_CANDIDATES).
 CANDIDATES = ("oidn", "radiance")
+PF_CANDIDATES = ("oidn", "oidn_pf", "radiance")
 #: Feature channels: log OIDN, log noisy, albedo, normal, log relative deviation of the noisy
-#: mean from OIDN; with the variance: log relative variance and the deviation in standard deviations.
+#: mean from OIDN; with the variance: log relative variance and the deviation in standard deviations;
+#: with the prefiltered candidate: its log colour and its log relative deviation from OIDN.
 N_FEATURES = 3 + 3 + 3 + 3 + 1
 N_VARIANCE_FEATURES = 2
+N_PF_FEATURES = 3 + 1
 
 
 def _lum(x: torch.Tensor) -> torch.Tensor:
@@ -74,9 +84,9 @@ def _lum(x: torch.Tensor) -> torch.Tensor:
     return 0.2126 * x[:, 0:1] + 0.7152 * x[:, 1:2] + 0.0722 * x[:, 2:3]
 
 
-def combine_features(batch: dict[str, torch.Tensor], use_variance: bool = False) -> torch.Tensor:
-    """``(B, N_FEATURES [+ N_VARIANCE_FEATURES], H, W)`` inputs of the weight network,
-    exposure-normalised where it matters (log colour; ratios, not differences)."""
+def combine_features(batch: dict[str, torch.Tensor], use_variance: bool = False, prefiltered: bool = False) -> torch.Tensor:
+    """``(B, N_FEATURES [+ N_VARIANCE_FEATURES] [+ N_PF_FEATURES], H, W)`` inputs of the weight
+    network, exposure-normalised where it matters (log colour; ratios, not differences)."""
     oidn = batch["oidn"].clamp_min(0)
     noisy = batch["radiance"].clamp_min(0)
     lo, ln = _lum(oidn), _lum(noisy)
@@ -88,6 +98,9 @@ def combine_features(batch: dict[str, torch.Tensor], use_variance: bool = False)
         var = _lum(batch["radiance_variance"].clamp_min(0))
         # Noise relative to the signal, and the deviation in standard deviations of the noisy mean.
         feats += [torch.log1p(var / (lo * lo + EPS)), torch.log1p((ln - lo) ** 2 / (var + EPS * EPS + 1e-3 * lo * lo))]
+    if prefiltered:
+        pf = batch["oidn_pf"].clamp_min(0)
+        feats += [torch.log1p(pf), torch.log1p((_lum(pf) - lo).abs() / (lo + EPS))]
     return torch.cat(feats, dim=1)
 
 
@@ -118,8 +131,9 @@ class Combine(Denoiser):
             raise ValueError(f"kernel must be odd and >= 1, got {config.kernel}")
         k2 = config.kernel * config.kernel
         w = config.width
-        n_in = N_FEATURES + (N_VARIANCE_FEATURES if config.use_variance else 0)
-        self.net = UNet(n_in, len(CANDIDATES) * k2, [(w, w)] * config.levels, (w, w), [(w, w)] * config.levels)
+        n_in = N_FEATURES + (N_VARIANCE_FEATURES if config.use_variance else 0) + (N_PF_FEATURES if config.prefiltered else 0)
+        self.names = PF_CANDIDATES if config.prefiltered else CANDIDATES
+        self.net = UNet(n_in, len(self.names) * k2, [(w, w)] * config.levels, (w, w), [(w, w)] * config.levels)
         if not 0 <= config.start_logit < LOGIT_BOUND:
             raise ValueError(f"start_logit must be in [0, {LOGIT_BOUND}), got {config.start_logit}")
         with torch.no_grad():  # (nearly) the identity on OIDN at the start
@@ -129,23 +143,23 @@ class Combine(Denoiser):
             self.net.final.bias[k2 // 2] = s / (1 - s / LOGIT_BOUND)  # the raw value that soft-clips to s
 
     def required_channels(self) -> list[str]:
-        return ["oidn", "radiance"] + (["radiance_variance"] if self.config.use_variance else []) + ["albedo", "normal"]
+        return list(self.names) + (["radiance_variance"] if self.config.use_variance else []) + ["albedo", "normal"]
 
     def features(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
-        return combine_features(batch, self.config.use_variance)
+        return combine_features(batch, self.config.use_variance, self.config.prefiltered)
 
     def weights(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
-        """(B, len(CANDIDATES) * k * k, H, W) softmax weights."""
+        """(B, len(self.names) * k * k, H, W) softmax weights."""
         raw = self.net(self.features(batch))
         return torch.softmax(raw / (1 + raw.abs() / LOGIT_BOUND), dim=1)
 
     def candidates(self, batch: dict[str, torch.Tensor]) -> list[torch.Tensor]:
-        """The candidate images, in :data:`CANDIDATES` order (the noisy one clamped, see the config)."""
+        """The candidate images, in ``self.names`` order (the noisy one clamped, see the config)."""
         oidn, noisy = batch["oidn"], batch["radiance"]
         if self.config.noisy_clamp > 0:
             bright = F.max_pool2d(F.pad(oidn.clamp_min(0), (1, 1, 1, 1), mode="replicate"), 3, stride=1)
             noisy = torch.minimum(noisy, self.config.noisy_clamp * bright + EPS)
-        return [oidn, noisy]
+        return [oidn, batch["oidn_pf"], noisy] if self.config.prefiltered else [oidn, noisy]
 
     def forward(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
         return apply_weights(self.candidates(batch), self.weights(batch), self.config.kernel)
@@ -163,6 +177,7 @@ _PAPER = ("Back et al. 2020 (deep combiner), Zheng et al. 2021 (ensemble denoisi
         "small_var": lambda: CombineConfig(use_variance=True),
         "small_k3": lambda: CombineConfig(kernel=3),
         "paper": lambda: CombineConfig(width=32, levels=3, kernel=5, use_variance=True),
+        "ens": lambda: CombineConfig(prefiltered=True),
     },
     paper=_PAPER,
     description="U-Net -> per-pixel softmax kernels over OIDN 2.5.1's output and the noisy mean",

@@ -212,8 +212,11 @@ def training_batches(
     * ``spp (B,)`` int64: input samples per pixel of each row (for logging).
     """
     source = batch_source(data_dir, model, cfg, rank=rank, world_size=world_size)
-    if "oidn" in _input_channels(model):
-        precompute_oidn(Dataset(data_dir).images("train"), cfg)
+    from mcdenoise.data.oidn_input import split_oidn
+
+    derived = split_oidn(_input_channels(model))[1]
+    if derived:
+        precompute_oidn(Dataset(data_dir).images("train"), cfg, derived)
     dev = torch.device(device)
     loader = torch.utils.data.DataLoader(
         source,
@@ -229,10 +232,11 @@ def training_batches(
         yield {k: v.to(dev, non_blocking=True) for k, v in batch.items()}
 
 
-def precompute_oidn(images: list, cfg: DataConfig) -> None:
+def precompute_oidn(images: list, cfg: DataConfig, channels: list[str] | None = None) -> None:
     """Fill the OIDN cache for every input sample count a crop can draw, here, before the loader
     forks its workers: OIDN's TBB thread pool does not survive a fork (a worker computing OIDN
-    after the parent ran it hangs), and each (image, spp) is paid for once (issue 20)."""
+    after the parent ran it hangs), and each (image, spp) is paid for once (issue 20).
+    ``channels``: the derived OIDN channels to fill (default ``["oidn"]``)."""
     import sys
 
     from mcdenoise.data.oidn_input import oidn_for
@@ -245,9 +249,11 @@ def precompute_oidn(images: list, cfg: DataConfig) -> None:
         else:
             counts = [m.spp // 2] if cfg.target == "noisy" else [None]
         todo += [(im, k) for k in counts]
-    print(f"OIDN inputs: {len(todo)} (image, spp) pairs, cached beside the dataset", file=sys.stderr)
+    channels = channels or ["oidn"]
+    print(f"OIDN inputs: {len(todo)} (image, spp) pairs x {', '.join(channels)}, cached beside the dataset", file=sys.stderr)
     for im, k in todo:
-        oidn_for(im, k)
+        for ch in channels:
+            oidn_for(im, k, channel=ch)
 
 
 def validation_batches(
