@@ -8,6 +8,7 @@ from pathlib import Path
 import pytest
 
 from mcdenoise.cli import main as cli
+from mcdenoise.eval.ranking import terminal_summary
 from mcdenoise.models.weights import shipped
 
 pytestmark = pytest.mark.render
@@ -33,6 +34,9 @@ def test_demo_tiny_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixture[str]
         if name != "reference":
             assert name in text  # the printed table has a row per method
     assert (out / "report" / "index.html").is_file() and "report:" in text
+    # Bug caught: the demo printed a table of its own (unranked, other columns) instead of the ranked
+    # summary `mcdenoise eval` prints; now both print ranking.terminal_summary of the same results.
+    assert terminal_summary(doc) in text and "best relMSE first" in text
     # Same settings: the render is reused; another seed: rendered again, never reused.
     assert cli.main(["demo", "--out", str(out), *TINY]) == 0
     assert "reusing" in capsys.readouterr().out

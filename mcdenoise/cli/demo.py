@@ -5,8 +5,8 @@ Steps: (1) ``cornell-dof`` (default) at 8 spp plus a 1024-spp reference into ``O
 reused on a rerun when its size, spp, reference spp and seed match the command; (2)
 :func:`mcdenoise.eval.evaluate` on that image with every shipped model, OIDN ``high`` and ``fast``
 and the NL-means filter, which writes ``OUT/report/index.html``, ``results.json`` and the full-size
-outputs; (3) the EXRs and a tonemapped PNG of each output under ``OUT/exr`` and ``OUT/png``; (4) a
-short table on stdout.
+outputs; (3) the EXRs and a tonemapped PNG of each output under ``OUT/exr`` and ``OUT/png``; (4) the
+ranked summary ``mcdenoise eval`` prints (:func:`mcdenoise.eval.ranking.terminal_summary`).
 """
 
 from __future__ import annotations
@@ -16,7 +16,6 @@ import json
 import shutil
 import time
 from pathlib import Path
-from typing import Any
 
 
 def add_parser(p: argparse.ArgumentParser) -> None:
@@ -57,21 +56,11 @@ def _render(args: argparse.Namespace, folder: Path) -> float:
     return time.perf_counter() - t0
 
 
-def _table(doc: dict[str, Any], spp: int) -> str:
-    rows = [r for r in doc["summary"] if r["subset"] == "all" and r["spp"] == spp]
-    noisy = next((r["relmse"] for r in rows if r["method"] == "noisy"), None)
-    lines = [f"{'method':<22}{'relMSE':>9}{'vs noisy':>10}{'PSNR dB':>9}{'ms/MP':>9}"]
-    for r in rows:
-        gain = f"{noisy / r['relmse']:.1f}x" if noisy and r["relmse"] else "-"
-        ms = f"{r['ms_per_mpix']:.0f}" if r.get("ms_per_mpix") else "-"
-        lines.append(f"{r['method']:<22}{r['relmse']:>9.4f}{gain:>10}{r['psnr']:>9.2f}{ms:>9}")
-    return "\n".join(lines)
-
-
 def run(args: argparse.Namespace) -> int:
     from mcdenoise.errors import McDenoiseError
     from mcdenoise.eval import evaluate
     from mcdenoise.eval.oidn import oidn_available
+    from mcdenoise.eval.ranking import terminal_summary
     from mcdenoise.io.exr import read_exr, write_preview
     from mcdenoise.models.weights import shipped
 
@@ -116,7 +105,7 @@ def run(args: argparse.Namespace) -> int:
     for name, src in sources.items():
         shutil.copyfile(src, exr_dir / src.name)
         write_preview(png_dir / f"{name}.png", read_exr(src)["radiance"], tonemap="reinhard")
-    _say(_table(doc, args.spp))
+    _say(terminal_summary(doc))  # the ranked summary `mcdenoise eval` prints
     rows = {r["method"]: r["relmse"] for r in doc["summary"] if r["subset"] == "all" and r["spp"] == args.spp}
     worse = [m for m in models if m in rows and "noisy" in rows and rows[m] > rows["noisy"]]
     if worse:

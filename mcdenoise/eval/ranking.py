@@ -105,6 +105,15 @@ def summary_text(doc: dict[str, Any], subset: str = "all") -> str:
     return "\n".join(lines)
 
 
+def terminal_summary(doc: dict[str, Any]) -> str:
+    """What ``mcdenoise eval`` and ``mcdenoise demo`` print: :func:`summary_text`, then the same
+    tables for the depth-of-field / motion-blur images alone when those are not all the images."""
+    text = summary_text(doc)
+    if any(s["subset"] == "dof_motion" for s in doc["summary"]) and not same_images(doc):
+        text += "\n\nDepth-of-field / motion-blur images only:\n" + summary_text(doc, "dof_motion").rsplit("\n", 1)[0]
+    return text
+
+
 def summary_html(doc: dict[str, Any], subset: str = "all", note: bool = True) -> str:
     """The ranked tables as HTML (best of each column in bold), one per spp; ``note``: the
     :func:`timing_note` under them."""
