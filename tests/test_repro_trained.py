@@ -54,7 +54,7 @@ def test_tiny_run_writes_every_variant_with_finite_curves(name: str, tiny: Path,
         assert [p["step"] for p in v["curve"]] == [1, 2]
         assert all(math.isfinite(p[m]) for p in v["curve"] for m in ("relmse", "smape", "l1", "psnr"))
         assert v["parameters"] > 0
-    assert res["verdict"] in ("agrees", "partly", "disagrees") and res["explanation"]
+    assert res["verdict"] in ("agrees", "partly", "disagrees", "inconclusive") and res["explanation"]
     assert res["data"]["val_references"] and res["data"]["val_images"] == 1
     saved = json.loads(Path(res["json"]).read_text())
     assert saved["variants"].keys() == res["variants"].keys()
@@ -124,9 +124,47 @@ def test_verdicts_read_the_metric_in_the_right_direction() -> None:
     res = {"metric": "l1", "steps": 40, "variants": {"kpcn": {"curve": curve([0.5, 0.2, 0.1, 0.1])},
                                                      "dpcn": {"curve": curve([0.9, 0.6, 0.4, 0.2])}}}
     verdict, text = kpcn_vs_dpcn.judge(res)
-    assert verdict == "agrees" and "after 20 of 40 steps, 2.0x sooner" in text
+    assert verdict == "agrees" and "by step 20 of 40, 2.0-4.0x sooner" in text
     res["variants"]["kpcn"], res["variants"]["dpcn"] = res["variants"]["dpcn"], res["variants"]["kpcn"]
     assert kpcn_vs_dpcn.judge(res)[0] == "disagrees"
+
+
+def test_layer_verdict_weighs_gaps_against_the_runs_spread() -> None:
+    """Catches issue 18: layer-table2 said "disagrees" when four layers beat two by more than a 2%
+    margin although the runs wobbled by 11% over their last validations; a gap within that spread
+    is "inconclusive", and one beyond it still disagrees."""
+    from mcdenoise.repro import layer_table2
+
+    def res(last3: dict[str, list[float]]) -> dict:
+        return {"metric": "relmse", "steps": 300, "variants": {
+            k: {"label": k, "curve": [{"step": 100 * (i + 1), "relmse": x} for i, x in enumerate(xs)]}
+            for k, xs in last3.items()}}
+
+    # Two layers wobble by 12% (0.0191 -> 0.0170); four beat two by 5%, weighted by 4%: within it.
+    noisy = res({"l1": [0.03, 0.03, 0.03], "l2": [0.0191, 0.0189, 0.0170], "l4": [0.0165, 0.0166, 0.01615],
+                 "weighted": [0.0165, 0.0164, 0.01632]})
+    verdict, text = layer_table2.judge(noisy)
+    assert verdict == "inconclusive", text
+    assert "noise 12.4% of L=2" in text
+    # The same gaps with steady runs are beyond the noise: the claims are contradicted.
+    steady = res({"l1": [0.03] * 3, "l2": [0.017] * 3, "l4": [0.01615] * 3, "weighted": [0.01632] * 3})
+    assert layer_table2.judge(steady)[0] == "disagrees"
+    # docs/RESULTS.md's run: four beat two by 22%, weighted beats alpha by 35%, spread 11%.
+    docs = res({"l1": [0.01652, 0.02311, 0.02262], "l2": [0.01911, 0.01888, 0.01715],
+                "l4": [0.01204, 0.01349, 0.0134], "weighted": [0.01069, 0.01148, 0.0111]})
+    assert layer_table2.judge(docs)[0] == "disagrees"
+
+
+def test_kpcn_speed_up_at_the_first_validation_point_is_a_lower_bound() -> None:
+    """Catches issue 18: "8.0x sooner" stated as a measurement when KPCN was already below DPCN's
+    final error at the first validation point (step 188 of 1500), which only bounds it from below."""
+    from mcdenoise.repro import kpcn_vs_dpcn
+
+    curve = lambda xs: [{"step": 188 * (i + 1), "l1": x} for i, x in enumerate(xs)]  # noqa: E731
+    res = {"metric": "l1", "steps": 1504, "variants": {"kpcn": {"curve": curve([0.0188, 0.0183, 0.0173])},
+                                                       "dpcn": {"curve": curve([0.047, 0.034, 0.0255])}}}
+    verdict, text = kpcn_vs_dpcn.judge(res)
+    assert verdict == "agrees" and "at least 8.0x sooner" in text and "lower bound" in text and "first validation" in text
 
 
 def test_model_overrides_reach_the_model_and_the_run_folder(tiny: Path, tmp_path: Path) -> None:

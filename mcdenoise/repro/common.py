@@ -68,7 +68,8 @@ class Experiment:
     steps: int
     """Default optimizer steps per variant (sized for ~10 minutes in all on the 2-core machine)."""
     judge: Callable[[dict[str, Any]], tuple[str, str]]
-    """``result -> (verdict, explanation)``; verdict is "agrees", "disagrees" or "partly"."""
+    """``result -> (verdict, explanation)``; verdict is "agrees", "disagrees", "partly" or
+    "inconclusive" (every difference within the runs' own spread)."""
     batch: int = 4
     crop: int = 32
     validations: int = 6
