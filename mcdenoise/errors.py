@@ -37,3 +37,7 @@ class OutputExistsError(OutputError, FileExistsError):
 
 class NonFiniteError(FormatError):
     """Data holds NaN/Inf where the caller asked to refuse them (``--nonfinite error``)."""
+
+
+class EvalError(McDenoiseError):
+    """An evaluation cannot run as asked: no images, no references, bad sample counts..."""

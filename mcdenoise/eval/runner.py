@@ -11,128 +11,39 @@ mean time per megapixel of a (method, spp) is total seconds over total megapixel
 The report folder (written whole, then renamed into place) holds ``results.json``,
 ``results.csv``, ``index.html`` with its PNGs (:mod:`mcdenoise.eval.html`); ``results_md``
 also fills block ``eval:SECTION`` of a Markdown file (:mod:`mcdenoise.eval.resultsmd`).
+
+This module runs the loop and writes the report; which images (:mod:`mcdenoise.eval.images`),
+which methods (:mod:`mcdenoise.eval.lineup`) and how they are scored and averaged
+(:mod:`mcdenoise.eval.scores`) live beside it.
 """
 
 from __future__ import annotations
 
-import csv
 import json
-import math
 import os
 import re
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
 
-from mcdenoise.data.dataset import MANIFEST_FILE, SPLITS, Dataset
-from mcdenoise.data.format import META_FILE, ImageFolder
-from mcdenoise.errors import McDenoiseError
-from mcdenoise.eval.metrics import METRICS, compute_metrics
-from mcdenoise.eval.methods import ClassicMethod, Inputs, Method, ModelMethod, NoisyMethod, OIDNMethod
+from mcdenoise.errors import EvalError
+from mcdenoise.eval.images import EvalImage, collect_images, image_effects
+from mcdenoise.eval.lineup import build_methods
+from mcdenoise.eval.methods import Inputs, Method
+from mcdenoise.eval.metrics import METRICS
 from mcdenoise.eval.provenance import provenance
+from mcdenoise.eval.scores import CSV_FIELDS, SUBSETS, image_metrics, summarize, write_csv
 from mcdenoise.io.atomic import atomic_dir, atomic_file
 
-__all__ = ["EvalError", "EvalImage", "evaluate", "collect_images", "image_effects", "RESULTS_FORMAT", "CSV_FIELDS"]
+__all__ = ["EvalError", "EvalImage", "evaluate", "collect_images", "image_effects", "build_methods", "summarize",
+           "write_csv", "RESULTS_FORMAT", "CSV_FIELDS", "SUBSETS"]
 
 RESULTS_FORMAT = "mcdenoise-eval"
 RESULTS_VERSION = 1
-#: Leading columns of results.csv; one column per metric follows.
-CSV_FIELDS = ("image", "spp", "method", "seconds", "ms_per_mpix")
-#: Subsets summarised separately: name -> the image effects that put an image in it.
-SUBSETS = {"all": None, "dof_motion": ("depth_of_field", "motion_blur")}
-
-
-class EvalError(McDenoiseError):
-    """The evaluation cannot run as asked: no images, no references, bad sample counts..."""
-
-
-@dataclass
-class EvalImage:
-    """One image of the evaluation. ``id`` is unique: ``<data folder name>/<path in it>``."""
-
-    id: str
-    folder: ImageFolder
-    data: str
-    effects: list[str] = field(default_factory=list)
-
-    def to_json(self) -> dict[str, Any]:
-        m = self.folder.meta
-        return {"id": self.id, "path": str(self.folder.path), "data": self.data, "scene": m.scene,
-                "width": m.width, "height": m.height, "spp": m.spp, "reference_spp": m.reference_spp,
-                "effects": self.effects}
-
-
-def image_effects(meta: Any) -> list[str]:
-    """``depth_of_field`` / ``motion_blur`` when the image has them.
-
-    Procedural images record both flags in ``extra["procedural"]``; other renders (the built-in
-    scenes) are judged by their camera's scene features: a lens aperture, an open shutter.
-    """
-    proc = meta.extra.get("procedural") if isinstance(meta.extra, dict) else None
-    f = meta.scene_features
-    if isinstance(proc, dict) and "depth_of_field" in proc:
-        dof, motion = bool(proc.get("depth_of_field")), bool(proc.get("motion_blur"))
-    else:
-        dof = float(f.get("aperture_radius", 0.0)) > 0.0
-        motion = float(f.get("shutter_close", 0.0)) > float(f.get("shutter_open", 0.0))
-    return [name for name, on in (("depth_of_field", dof), ("motion_blur", motion)) if on]
-
-
-def _folders_of(d: Path, split: str) -> list[tuple[str, ImageFolder]]:
-    """(relative id, folder) for a dataset (its ``split``), one image folder, or a folder of them."""
-    if (d / MANIFEST_FILE).is_file():
-        ds = Dataset(d)
-        paths = ds.paths(split)
-        if not paths:
-            counts = ", ".join(f"{s} {len(ds.paths(s))}" for s in SPLITS)
-            raise EvalError(f"{d}: the dataset has no images in the {split!r} split ({counts})")
-        return [(p.relative_to(d).as_posix(), ImageFolder(p)) for p in paths]
-    if (d / META_FILE).is_file():
-        return [(".", ImageFolder(d))]
-    subs = sorted(p for p in d.iterdir() if (p / META_FILE).is_file()) if d.is_dir() else []
-    if not subs:
-        what = "no such folder" if not d.exists() else "neither a dataset (manifest.json), an image folder (meta.json), nor a folder of image folders"
-        raise EvalError(f"{d}: {what}")
-    return [(p.name, ImageFolder(p)) for p in subs]
-
-
-def collect_images(data: Sequence[str | os.PathLike], split: str = "test",
-                   max_images: int | None = None) -> tuple[list[EvalImage], list[str]]:
-    """The images with a reference from each data folder (at most ``max_images`` per folder), and
-    notes on what was left out. Raises :class:`EvalError` when a folder gives none."""
-    if split not in SPLITS:
-        raise EvalError(f"unknown split {split!r}; choose one of {', '.join(SPLITS)}")
-    if max_images is not None and max_images < 1:
-        raise EvalError(f"--max-images must be at least 1, got {max_images}")
-    images: list[EvalImage] = []
-    notes: list[str] = []
-    seen: set[str] = set()
-    for d in data:
-        d = Path(d)
-        found = _folders_of(d, split)
-        with_ref = [(rel, f) for rel, f in found if f.has_reference]
-        for rel, f in found:
-            if not f.has_reference:
-                notes.append(f"{f.path}: no reference, left out")
-        if not with_ref:
-            raise EvalError(f"{d}: none of its {len(found)} image(s) has a reference (reference.exr)")
-        if max_images is not None and len(with_ref) > max_images:
-            notes.append(f"{d}: first {max_images} of {len(with_ref)} images (--max-images)")
-            with_ref = with_ref[:max_images]
-        base = d.resolve().name or "data"
-        for rel, f in with_ref:
-            iid = base if rel == "." else f"{base}/{rel}"
-            n = 2
-            while iid in seen:  # two data folders of the same name
-                iid, n = f"{base}#{n}/{rel}", n + 1
-            seen.add(iid)
-            images.append(EvalImage(iid, f, str(d), image_effects(f.meta)))
-    return images, notes
 
 
 def _check_spp(spp: Sequence[int]) -> list[int]:
@@ -152,76 +63,6 @@ def _device(device: str | None) -> torch.device:
     if device == "cuda" and not torch.cuda.is_available():
         raise EvalError("--device cuda: no CUDA device is available")
     return torch.device(device)
-
-
-def build_methods(models: Sequence[str | os.PathLike], oidn: Sequence[str], classic: bool,
-                  device: torch.device, precisions: Sequence[str] = ("float32",), oidn_threads: int | None = None,
-                  notes: list[str] | None = None) -> list[Method]:
-    """Noisy, OIDN per quality (on ``oidn_threads`` threads; default every core), NL-means, then
-    each model in each precision; a bfloat16 run of a model is labelled ``LABEL+bf16``.
-
-    Labels stay unique: a run folder or weights file whose label is taken (``runs/layer`` beside
-    the shipped ``layer``) is labelled by its path as given; only a label still taken gets a
-    ``-N`` suffix, and every relabelling is said in ``notes``."""
-    from mcdenoise.models.inference import resolve_precision
-    from mcdenoise.models.weights import load_denoiser
-
-    methods: list[Method] = [NoisyMethod()]
-    if oidn:
-        from mcdenoise.eval.oidn import QUALITIES, _pyoidn
-
-        for q in oidn:
-            if q.removesuffix("-pf") not in QUALITIES:
-                raise EvalError(f"OIDN quality {q!r}: expected one of {', '.join(QUALITIES)}, "
-                                f"each optionally with -pf (guides prefiltered by OIDN first)")
-        _pyoidn()  # one-line OIDNError now rather than after the first image
-        methods += [OIDNMethod(q, oidn_threads) for q in dict.fromkeys(oidn)]
-    if classic:
-        methods.append(ClassicMethod(device=device))
-    taken = {m.name for m in methods}
-    try:
-        resolved = list(dict.fromkeys(resolve_precision(p, device) for p in precisions))
-    except ValueError as e:
-        raise EvalError(f"--precision: {e}") from None
-    for spec in models:
-        if spec == "oidn":  # the name every command accepts for OIDN 2.5.1 high
-            if "oidn-high" not in taken:
-                from mcdenoise.eval.oidn import _pyoidn
-
-                _pyoidn()
-                methods.append(OIDNMethod("high", oidn_threads))
-                taken.add("oidn-high")
-            continue
-        for prec in resolved:
-            net, info = load_denoiser(spec, device=device)
-            suffix = "+bf16" if prec == "bfloat16" else ""
-            label = str(info.get("label") or info["name"]) + suffix
-            first = label
-            if label in taken and info.get("source") in ("run", "file"):
-                label = str(spec).rstrip("/\\") + suffix  # the path the user typed says which one it is
-            base, n = label, 2
-            while label in taken:
-                label, n = f"{base}-{n}", n + 1
-            taken.add(label)
-            if label != first and notes is not None:
-                notes.append(f"{spec}: labelled {label!r} ({first!r} was taken)")
-            methods.append(ModelMethod(label, net, {**info, "precision": prec}, device, precision=prec))
-    return methods
-
-
-def _num(v: float | None) -> float | None:
-    """JSON has no NaN/Inf: non-finite values (a diverged model) become null."""
-    return v if v is not None and math.isfinite(v) else None
-
-
-def _metrics(y: np.ndarray, ref: np.ndarray, names: list[str]) -> dict[str, float | None]:
-    """Every metric of ``names`` in float64; DSSIM is ``1 - SSIM`` (:func:`metrics.dssim`), so SSIM is
-    computed once when both are asked for."""
-    both = "ssim" in names and "dssim" in names
-    vals = compute_metrics(y.astype(np.float64), ref.astype(np.float64), [n for n in names if not (both and n == "dssim")])
-    if both:
-        vals["dssim"] = 1.0 - vals["ssim"]
-    return {n: _num(vals[n]) for n in names}
 
 
 def _run_timed(method: Method, prepared: Any, device: torch.device) -> tuple[np.ndarray, float | None]:
@@ -244,41 +85,6 @@ def _check_runnable(images: list[EvalImage], ks: list[int]) -> None:
         stored = ", ".join(str(s) for s in sorted({im.folder.meta.spp for im in images}))
         raise EvalError(f"--spp {' '.join(map(str, ks))}: no image can be evaluated at that sample count; "
                         f"the data stores {stored} spp (choose --spp at most that)")
-
-
-def summarize(rows: list[dict[str, Any]], images: list[EvalImage], methods: list[str], spps: list[int],
-              metric_names: list[str]) -> list[dict[str, Any]]:
-    """Means per (subset, method, spp): every metric over the subset's images, and ms per megapixel
-    (total time over total megapixels). Subsets without images are left out."""
-    effects = {im.id: set(im.effects) for im in images}
-    mpix = {im.id: im.folder.meta.width * im.folder.meta.height / 1e6 for im in images}
-    out = []
-    for subset, need in SUBSETS.items():
-        keep = [r for r in rows if need is None or effects[r["image"]] & set(need)]
-        for m in methods:
-            for k in spps:
-                sel = [r for r in keep if r["method"] == m and r["spp"] == k]
-                if not sel:
-                    continue
-                s: dict[str, Any] = {"subset": subset, "method": m, "spp": k, "images": len(sel)}
-                for name in metric_names:
-                    vals = [r[name] for r in sel]
-                    s[name] = None if any(v is None for v in vals) else _num(float(np.mean(vals)))
-                secs = [r["seconds"] for r in sel]
-                total_mp = sum(mpix[r["image"]] for r in sel)
-                s["ms_per_mpix"] = None if any(t is None for t in secs) else 1e3 * sum(secs) / total_mp
-                out.append(s)
-    return out
-
-
-def write_csv(path: Path, rows: list[dict[str, Any]], metric_names: list[str]) -> None:
-    """One row per image x spp x method; floats as ``repr`` (they read back exactly), null as empty."""
-    with atomic_file(path) as tmp, open(tmp, "w", newline="") as fh:
-        w = csv.writer(fh)
-        cols = [*CSV_FIELDS, *metric_names]
-        w.writerow(cols)
-        for r in rows:
-            w.writerow(["" if r[c] is None else repr(r[c]) if isinstance(r[c], float) else r[c] for c in cols])
 
 
 def evaluate(
@@ -425,7 +231,7 @@ def _evaluate(models: Sequence[str | os.PathLike], data_list: list[Any], out: Pa
                 if y.shape != ref.shape:
                     raise EvalError(f"{m.name} returned shape {y.shape} for {im.id}, expected {ref.shape}")
                 rows.append({"image": im.id, "spp": k, "method": m.name, "seconds": secs,
-                             "ms_per_mpix": None if secs is None else 1e3 * secs / mp, **_metrics(y, ref, metric_names)})
+                             "ms_per_mpix": None if secs is None else 1e3 * secs / mp, **image_metrics(y, ref, metric_names)})
                 outputs[m.name] = y
             if crops is not None:
                 crops.add(im.id, k, outputs, ref)

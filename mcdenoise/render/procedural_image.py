@@ -1,0 +1,156 @@
+"""Render one scene of a procedural dataset: draw it, load it once, and render its views or the
+frames of its camera path from that one loaded scene (each view checked by a preview first).
+
+Costs and why a scene is loaded once: :mod:`mcdenoise.render.procedural_dataset`.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from mcdenoise.render.dataset_config import DatasetConfig, image_paths, scene_name
+
+__all__ = ["render_procedural_image"]
+
+#: Camera draws per extra view before falling back to the drawn (already checked) camera.
+VIEW_ATTEMPTS = 8
+
+
+
+def _settings(cfg: DatasetConfig, seed: int, *, ps: Any = None, camera: Any = None, camera_end: Any = None) -> Any:
+    """Render settings of one image; with ``ps`` (and its view's ``camera``) the scene's motion,
+    and a reference time-slice count fitted to the on-screen motion."""
+    from mcdenoise.render import RenderSettings
+    from mcdenoise.render.procedural.views import reference_time_slices
+
+    motion = {k: tuple(v) for k, v in ps.object_motion.items()} if ps is not None else {}
+    slices = reference_time_slices(ps, camera, cfg.width) if motion else RenderSettings.ref_time_slices
+    return RenderSettings(spp=cfg.spp, ref_spp=cfg.ref_spp, width=cfg.width, height=cfg.height, seed=seed,
+                          max_depth=cfg.max_depth, object_motion=motion or None, camera_to_world_end=camera_end,
+                          ref_time_slices=slices)
+
+
+def _view(cfg: DatasetConfig, ps: Any, scene_seed: int, view: int, rejected: list[str]) -> tuple[np.ndarray, Any]:
+    """Camera (4x4) and render settings of view ``view`` >= 1 of the drawn scene ``ps``.
+
+    Camera ``attempt`` of the view is drawn from ``derive_seed(scene_seed, 3, view, attempt)``, so
+    a view never depends on which other views were rendered (shards, resume). Each is checked with
+    the same preview as the scene (on the loaded scene, same kernel); after VIEW_ATTEMPTS
+    rejections the drawn camera is used with the view's own seed.
+    """
+    from mcdenoise.render.procedural import derive_seed, preview_stats
+    from mcdenoise.render.procedural.views import set_camera, view_camera, view_motion_end
+
+    for attempt in range(VIEW_ATTEMPTS):
+        c2w = view_camera(ps, np.random.default_rng(derive_seed(scene_seed, 3, view, attempt)))
+        settings = _settings(cfg, derive_seed(scene_seed, view, 1), ps=ps, camera=c2w, camera_end=view_motion_end(ps, c2w))
+        set_camera(ps.loaded, c2w)
+        problem = preview_stats(ps, scene=ps.loaded, settings=settings, seed=derive_seed(scene_seed, 9, view, attempt)).problem()
+        if problem is None:
+            return c2w, settings
+        rejected.append(f"camera {attempt}: {problem}")
+    c2w = np.asarray(ps.camera_to_world)
+    return c2w, _settings(cfg, derive_seed(scene_seed, view, 1), ps=ps, camera=c2w, camera_end=ps.camera_to_world_end)
+
+
+def render_procedural_image(
+    cfg: DatasetConfig,
+    root: Path,
+    index: int,
+    todo: list[str],
+    *,
+    on_image: Callable[[str], None] | None = None,
+    **write_opts: Any,
+) -> None:
+    """Draw scene ``index`` and render its frames or views listed in ``todo`` (relative paths).
+
+    The scene is loaded once (by :func:`~mcdenoise.render.procedural.generate`, which checks it
+    with the input's own settings); all views, frames and references render from that object.
+    ``write_opts`` (``nonfinite``, ``max_bytes``) go to :func:`~mcdenoise.render.render_image`.
+    """
+    from mcdenoise.render import render_image
+    from mcdenoise.render.procedural import derive_seed, generate
+    from mcdenoise.render.procedural.views import set_camera
+    from mcdenoise.render.sequence import camera_path, motion_vectors, primary_hits
+
+    scene_seed = derive_seed(cfg.seed, index)
+    name = scene_name(index)
+    t0 = time.perf_counter()
+    if cfg.frames == 1:
+        # View 0's settings carry the drawn motion, known only once the scene is drawn.
+        def view0(ps: Any) -> Any:
+            return _settings(cfg, derive_seed(scene_seed, 0, 1), ps=ps, camera=ps.camera_to_world,
+                             camera_end=ps.camera_to_world_end)
+        ps = generate(scene_seed, kind=cfg.kind, width=cfg.width, height=cfg.height, objects=tuple(cfg.objects), world=cfg.world,
+                      settings=view0, keep_loaded=True)
+    else:
+        ps = generate(scene_seed, kind=cfg.kind, width=cfg.width, height=cfg.height, objects=tuple(cfg.objects), world=cfg.world,
+                      settings=_settings(cfg, derive_seed(scene_seed, 0, 1)), record_position=True, keep_loaded=True)
+    t1 = time.perf_counter()
+    scene = ps.loaded
+    meta: dict[str, Any] = {
+        "procedural": {
+            "dataset_seed": cfg.seed,
+            "index": index,
+            "seed": ps.seed,
+            "drawn_seed": ps.drawn_seed,
+            "attempts": ps.attempts,
+            **ps.info,
+            # Drawing + scene load + preview check (which compiles the input's kernels).
+            "generate_seconds": round(t1 - t0, 3),
+        }
+    }
+    if cfg.frames == 1:
+        for v, rel in enumerate(image_paths(cfg, index)):
+            if rel not in todo:
+                continue
+            tv = time.perf_counter()
+            rejected: list[str] = []
+            if v == 0:
+                c2w = np.asarray(ps.camera_to_world)
+                settings = view0(ps)
+            else:
+                c2w, settings = _view(cfg, ps, scene_seed, v, rejected)
+            set_camera(scene, c2w)
+            view_meta = dict(meta)
+            if cfg.views > 1:
+                view_meta["view"] = {"index": v, "views": cfg.views, "rejected_cameras": rejected,
+                                     "check_seconds": round(time.perf_counter() - tv, 3)}
+            extra = {**view_meta, "camera_to_world": c2w.tolist()}
+            if settings.object_motion:
+                extra["ref_time_slices"] = min(settings.ref_time_slices, settings.ref_spp)
+            # overwrite: only a damaged leftover of ours can be there (finished images are not todo).
+            render_image(scene, root / rel, settings, scene_name=name, extra_meta=extra, overwrite=True, **write_opts)
+            if on_image is not None:
+                on_image(rel)
+        return
+    # A sequence: static scene, camera along a smooth path (in-frame motion blur is off so that
+    # frames are consistent and motion vectors describe all the change between frames).
+    origin, target, up = ps.camera_path
+    rng = np.random.default_rng(derive_seed(scene_seed, 2))
+    max_shift = 0.3 if ps.kind == "indoor" else None  # stay inside the room
+    path = camera_path(origin, target, up, cfg.frames, rng, max_shift=max_shift)
+    (root / name).mkdir(parents=True, exist_ok=True)
+    for f, rel in enumerate(image_paths(cfg, index)):
+        if rel not in todo:
+            continue
+        settings = _settings(cfg, derive_seed(scene_seed, f, 1))
+        prev = path[f - 1] if f > 0 else path[f]
+        if f == 0:  # no previous frame: no motion (exactly)
+            motion = np.zeros((2, cfg.height, cfg.width), np.float32)
+        else:
+            pos, hit, dirs = primary_hits(scene, path[f], ps.fov, cfg.width, cfg.height)
+            motion = motion_vectors(pos, hit, dirs, prev, ps.fov, cfg.width, cfg.height)
+        frame_meta = {**meta, "frame": f, "frames": cfg.frames, "camera_to_world_prev": np.asarray(prev).tolist(),
+                      "camera_to_world": np.asarray(path[f]).tolist()}
+        # The camera is set here as an opaque value rather than through render_image's
+        # camera_to_world (a literal): every frame then reuses the first frame's kernels.
+        set_camera(scene, path[f])
+        render_image(scene, root / rel, settings, scene_name=name, extra_meta=frame_meta,
+                     record_position=True, extra_noisy={"motion": motion}, overwrite=True, **write_opts)
+        if on_image is not None:
+            on_image(rel)
