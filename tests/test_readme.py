@@ -163,3 +163,37 @@ def test_readme_names_the_test_that_runs_its_tour() -> None:
     text = " ".join(README.read_text().split())
     assert "tests/test_readme.py::test_readme_tour_runs" in text
     assert "test_readme_tour_runs" in globals()
+
+
+# ----------------------------------------------------------------------------- speed figures
+
+DOCS_WITH_SPEED = [README, README.parent / "docs" / "DENOISE.md"]
+#: A time or a speed ratio: "214 s", "9 s", "606 ms", "16-43 CPU-minutes", "0.676x", "ms/MP".
+_SPEED = re.compile(r"\b\d+(?:\.\d+)? ?(?:s|ms|min|minutes|CPU-minutes)\b|\b\d+(?:\.\d+)?x\b|\bms/MP\b")
+_CPU = re.compile(r"EPYC|Xeon|not recorded|do not record|did not record|GPU")
+_PRECISION = re.compile(r"float32|bfloat16|precision")
+
+
+def _speed_paragraphs(text: str) -> list[str]:
+    """Paragraphs and list items (joined to one line) with a time or speed ratio; each line of a
+    code block counts on its own."""
+    code = [ln for b in re.findall(r"```[a-z]*\n(.*?)```", text, flags=re.S) for ln in b.splitlines()]
+    prose = re.sub(r"```.*?```", "", text, flags=re.S)
+    items = [it for block in re.split(r"\n\s*\n", prose) for it in re.split(r"\n(?=[-*] )", block)]
+    return [p for p in (" ".join(x.split()) for x in [*items, *code]) if _SPEED.search(p)]
+
+
+@pytest.mark.parametrize("doc", DOCS_WITH_SPEED, ids=lambda p: p.name)
+def test_speed_figures_name_cpu_precision_and_threads(doc: Path) -> None:
+    """Bug caught: speed figures that said only '2-core CPU' or 'on 2 cores' (the 4K denoise times
+    in DENOISE.md, the demo's and make test's durations, the render-speed ratio in README) and so
+    could not be compared across machines (issue 18 section 2). A paragraph or list item with a
+    time or a speed ratio must name the CPU model (or say it was not recorded), the precision and
+    the thread count."""
+    bad = []
+    for para in _speed_paragraphs(doc.read_text()):
+        missing = [what for what, rx in (("CPU model", _CPU), ("precision", _PRECISION), ("threads", re.compile("thread")))
+                   if not rx.search(para)]
+        if missing:
+            bad.append(f"{', '.join(missing)} missing: {para[:160]}")
+    assert not bad, "\n".join(bad)
