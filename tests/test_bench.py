@@ -10,7 +10,7 @@ import torch
 
 from mcdenoise.bench.memory import cpu_peak_supported, peak_call_memory
 from mcdenoise.bench.plan import BenchConfig, parse_method, priority, quick_config
-from mcdenoise.bench.report import markdown, ratios, target_rows
+from mcdenoise.bench.report import api_rows, markdown, ratios, target_rows
 from mcdenoise.bench.timing import interleaved_times
 from mcdenoise.cli.main import main
 from mcdenoise.eval.oidn import oidn_available
@@ -108,9 +108,9 @@ def test_run_bench_reduced_set_and_budget() -> None:
             ("layer_optimized:small", 24, 8)} <= ok
     assert ("oidn:high", 40, None) in ok and ("layer_optimized:small", 40, 8) in ok  # a target: kept
     skipped = {(e["method"], e["spp"]) for e in res["entries"] if e["status"] == "skipped" and e["width"] == 40}
-    assert skipped == {("wskp:small", None), ("layer_optimized:small", 1)}
+    assert skipped == {("wskp:small", None), ("wskp:small api", None), ("layer_optimized:small", 1)}
     assert all(e["flops_per_pixel"] > 0 for e in res["entries"] if e["status"] == "ok" and e["method"] != "oidn:high"
-               and not e["method"].startswith("oidn"))
+               and not e["method"].startswith("oidn") and not e["method"].endswith(" api"))
     assert {t["method"] for t in res["training"]} == {"wskp:small", "layer_optimized:small"}
     assert all(t["crops_per_s"] > 0 for t in res["training"])
     assert res["peak_conv"]["gflops"] > 0
@@ -131,7 +131,8 @@ def test_cli_bench_json_out(tmp_path, capsys) -> None:
     assert rc == 0
     printed = json.loads(capsys.readouterr().out)
     saved = json.loads(out.read_text())
-    assert printed["config"]["methods"] == saved["config"]["methods"] == ["oidn:high", "oidn:fast", "wskp:small"]
+    assert printed["config"]["methods"] == saved["config"]["methods"] == ["oidn:high", "oidn:fast", "wskp:small",
+                                                                           "wskp:small api"]
     assert {(e["width"], e["height"]) for e in saved["entries"]} == {(24, 16)}
     assert main(["bench", "--models", "nosuchmodel"]) == 1
     assert "unknown model" in capsys.readouterr().err
@@ -195,3 +196,47 @@ def test_overloaded_machine_is_warned_about() -> None:
     assert "**Warning**" not in text and "OIDN 2.5.1 (1 threads)" in text
     res["machine"]["load_end"] = 3.9
     assert "**Warning**: load average 3.9 at end exceeded the 2 cores" in markdown(res)
+
+
+@needs_oidn
+def test_bench_times_the_public_api_beside_the_model_call() -> None:
+    """Catches issue 18: `bench` timed only the bare model call, so the public API's extra cost
+    (0.42x against 0.24x OIDN high for shipped wskp at 1080p) was invisible. Every model with shipped
+    weights, pixel and sample models alike, gets a `NAME:PRESET api` entry in the same rounds (a
+    model without shipped weights none), and the report sets the two side by side."""
+    from mcdenoise.bench.run import _Runner, run_bench
+
+    methods = [parse_method(t) for t in ("oidn:high", "wskp:small", "kpcn:small", "sbmc:small", "layer_optimized:small")]
+    cfg = BenchConfig(methods=methods, sizes=((24, 16),), spp=(2,), rounds=1, warmup=1, train_steps=0, peak_conv=(8, 32))
+    res = run_bench(cfg, log=lambda _: None)
+    bad = [e for e in res["entries"] if e["status"] != "ok"]
+    assert not bad, bad
+    ok = {(e["method"], e["spp"]) for e in res["entries"]}
+    assert {("wskp:small api", None), ("kpcn:small api", None), ("sbmc:small api", 2)} <= ok
+    assert not any(m.startswith("layer_optimized") and m.endswith(" api") for m, _ in ok)
+    rows = {r["method"]: r for r in api_rows(res)}
+    assert set(rows) == {"wskp:small", "kpcn:small", "sbmc:small"}
+    assert all(r["api_s"] > 0 and r["model_s"] > 0 for r in rows.values())
+    assert "### Public API against the bare model call" in markdown(res)
+    cfg.api = False
+    assert not any(m.api for m in _Runner(cfg, print).methods)
+
+
+def test_api_rows_flag_an_api_slower_than_the_model_by_over_ten_percent() -> None:
+    """Catches a report that pairs the API entry with the wrong row or hides a slow API path."""
+    def e(method: str, s: float, spp: int | None = None) -> dict:
+        return {"method": method, "width": 64, "height": 64, "spp": spp, "status": "ok", "median_s": s}
+
+    res = {"entries": [e("wskp:small", 1.0), e("wskp:small api", 1.05), e("sbmc:small", 2.0, 8),
+                       e("sbmc:small api", 3.0, 8), e("sbmc:small api", 9.0, 4)]}
+    rows = {r["method"]: r for r in api_rows(res)}
+    assert rows["wskp:small"]["within"] and abs(rows["wskp:small"]["ratio"] - 1.05) < 1e-9
+    assert not rows["sbmc:small"]["within"] and rows["sbmc:small"]["spp"] == 8 and len(api_rows(res)) == 2
+
+
+@needs_oidn
+def test_cli_no_api_leaves_the_api_entries_out(capsys) -> None:
+    """Catches `--no-api` not reaching the run (the API entries double a shipped model's cost)."""
+    assert main(["bench", "--models", "wskp", "--sizes", "16x16", "--spp", "1", "--rounds", "1", "--train-steps", "0",
+                 "--no-api", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["config"]["methods"] == ["oidn:high", "oidn:fast", "wskp:small"]

@@ -8,6 +8,12 @@ comes from the same rounds. The first (smallest) size runs every entry; larger s
 entries whose time, extrapolated from the measured ones by pixel count, fits the budget, most
 important first (OIDN and the issue's targets always). Skipped entries are reported with their
 estimate.
+
+A model with shipped weights is also timed through the public API (``mcdenoise.denoise`` with
+numpy arrays and ``model=`` its weights), as the method ``NAME:PRESET api`` in the same rounds as
+its bare model call: the difference is what a user pays beyond the network (loading, channel
+checks, tiling plan, conversions). Such an entry is planned like its model's but never forced in
+(it is not a target).
 """
 
 from __future__ import annotations
@@ -52,10 +58,17 @@ class Method:
     """Registered model name, or ``oidn``."""
     preset: str
     """Model preset, or OIDN quality (``high``, ``fast``)."""
+    api: bool = False
+    """Timed through ``mcdenoise.denoise`` with the shipped weights, not as a bare model call."""
 
     @property
     def label(self) -> str:
-        return f"{self.name}:{self.preset}"
+        return f"{self.name}:{self.preset}" + (" api" if self.api else "")
+
+    @property
+    def bare(self) -> "Method":
+        """The same model as a bare call (itself when not an API entry)."""
+        return Method(self.name, self.preset)
 
     @property
     def is_oidn(self) -> bool:
@@ -121,6 +134,9 @@ class BenchConfig:
     train_spp: int = 8
     train_steps: int = 3
     """Timed training steps per model (after one untimed); 0 skips training throughput."""
+    api: bool = True
+    """Also time the public API path (:func:`mcdenoise.denoise`) of every model with shipped
+    weights, beside its bare call (see the module docstring)."""
     peak_conv: tuple[int, int] = (128, 128)
     """Channels and image side of the convolution that measures the machine's peak GFLOP/s."""
     seed: int = 0
@@ -152,6 +168,8 @@ def priority(method: Method, spp: int | None, size: tuple[int, int] | None = Non
     targets at ``target_size`` (or at any size when ``size`` is None), WSKP's paper presets at 720p."""
     if method.is_oidn:
         return 0
+    if method.api:  # beside its model, but never forced in for time
+        return max(1, priority(method.bare, spp, size, target_size))
     if (size is None or size == target_size) and any(method.label == t and (s is None or s == spp) for t, s, _ in TARGETS):
         return 0
     if size == (1280, 720) and method.label in PAPER_720P:

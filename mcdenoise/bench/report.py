@@ -12,7 +12,10 @@ from typing import Any
 
 from mcdenoise.bench.plan import TARGETS
 
-__all__ = ["ratios", "target_rows", "markdown"]
+__all__ = ["ratios", "target_rows", "api_rows", "markdown"]
+
+#: The public API counts as agreeing with the bare model call within this fraction (issue 18).
+API_TOLERANCE = 0.10
 
 
 def _ok(res: dict[str, Any]) -> list[dict[str, Any]]:
@@ -46,6 +49,24 @@ def target_rows(res: dict[str, Any], size: tuple[int, int] = (1920, 1080)) -> li
         r = ratios(res, hit[0])["high"] if hit else None
         rows.append({"method": label, "spp": spp, "limit": limit, "ratio": r,
                      "median_s": hit[0]["median_s"] if hit else None, "met": None if r is None else r <= limit})
+    return rows
+
+
+def api_rows(res: dict[str, Any]) -> list[dict[str, Any]]:
+    """Each ``NAME:PRESET api`` entry beside its bare model call at the same size and spp:
+    both medians, their ratio, and whether the API is within :data:`API_TOLERANCE` of the call."""
+    ok = _ok(res)
+    bare = {(e["method"], e["width"], e["height"], e["spp"]): e for e in ok}
+    rows = []
+    for e in ok:
+        if not e["method"].endswith(" api"):
+            continue
+        b = bare.get((e["method"][: -len(" api")], e["width"], e["height"], e["spp"]))
+        if b is None:
+            continue
+        r = e["median_s"] / b["median_s"]
+        rows.append({"method": b["method"], "width": e["width"], "height": e["height"], "spp": e["spp"],
+                     "model_s": b["median_s"], "api_s": e["median_s"], "ratio": r, "within": r <= 1 + API_TOLERANCE})
     return rows
 
 
@@ -120,6 +141,7 @@ def markdown(res: dict[str, Any], command: str = "") -> str:
                       "first, the whole path takes " + ", ".join(
                           f"{e['method']} {_ms(e['median_s'] + hi)} ({(e['median_s'] + hi) / hi:.3g}x OIDN high)" for e in comb) + ".", ""]
         lines.append("")
+    lines += _api(res)
     lines += _scaling(res, sizes)
     lines += _training(res)
     tr = target_rows(res)
@@ -137,6 +159,21 @@ def markdown(res: dict[str, Any], command: str = "") -> str:
                   + f": {e['status']}, {e['reason']}" for e in other]
         lines.append("")
     return "\n".join(lines)
+
+
+def _api(res: dict[str, Any]) -> list[str]:
+    rows = api_rows(res)
+    if not rows:
+        return []
+    out = ["### Public API against the bare model call (same rounds)", "",
+           "`NAME:PRESET api` is `mcdenoise.denoise(color, albedo=, normal=, depth=, features=, samples=, "
+           "model=<shipped weights>)` on numpy arrays, repeated calls; the bare call is the model's forward on "
+           f"tensors already in place. The API agrees when it takes at most {1 + API_TOLERANCE:g}x the bare call.", "",
+           "| method | size | spp | model ms | API ms | API / model | agrees |", "|---|---|---:|---:|---:|---:|---|"]
+    for r in rows:
+        out.append(f"| {r['method']} | {r['width']}x{r['height']} | {r['spp'] if r['spp'] is not None else '-'} | "
+                   f"{_ms(r['model_s'])} | {_ms(r['api_s'])} | {r['ratio']:.2f} | {'yes' if r['within'] else '**no**'} |")
+    return out + [""]
 
 
 def _scaling(res: dict[str, Any], sizes: list[tuple[int, int]]) -> list[str]:

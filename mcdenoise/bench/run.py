@@ -23,7 +23,7 @@ from mcdenoise.data.channels import base_name, num_components
 from mcdenoise.models.inference import inference_context, prepare_inference, resolve_precision
 from mcdenoise.models.registry import build_model, synthetic_batch
 
-__all__ = ["run_bench", "machine_info", "peak_conv_gflops"]
+__all__ = ["run_bench", "machine_info", "peak_conv_gflops", "shipped_weights", "api_arrays"]
 
 Log = Callable[[str], None]
 
@@ -151,10 +151,53 @@ def _train_throughput(m: Method, cfg: BenchConfig) -> dict[str, Any]:
             "s_per_step": s, "crops_per_s": cfg.train_batch / s}
 
 
+def shipped_weights(m: Method) -> Any:
+    """Path of ``m``'s shipped weights, or None when the package ships none for it."""
+    from mcdenoise.models.weights import SHIPPED_DIR
+
+    p = SHIPPED_DIR / f"{m.name}-{m.preset}.safetensors"
+    return p if not m.is_oidn and p.is_file() else None
+
+
+def api_arrays(model: torch.nn.Module, src: dict[str, torch.Tensor]) -> dict[str, Any]:
+    """Keyword arguments of :func:`mcdenoise.denoise` holding ``src`` (a batch of one, as the bare
+    call gets it) as numpy arrays, channel-first: ``color``, ``albedo``/``normal``/``depth`` when the
+    model reads them, every other pixel channel in ``features``, sample buffers in ``samples``."""
+    names = [n for n in model.required_channels() if n != "scene_features"]
+    samples = model.input_kind == "samples"
+
+    def px(name: str) -> Any:
+        t = src[name][0]
+        return (t.mean(0) if samples else t).detach().cpu().numpy()
+
+    if "radiance" in src:
+        color = px("radiance")
+    else:  # KPCN reads diffuse and specular; the colour is their sum
+        color = px("diffuse") + px("specular")
+    kw: dict[str, Any] = {"color": color}
+    features: dict[str, Any] = {}
+    if samples:
+        kw["samples"] = {n: src[n][0].detach().cpu().numpy() for n in names}
+    else:
+        for n in names:
+            if n in ("albedo", "normal", "depth"):
+                kw[n] = px(n)
+            elif n != "radiance":
+                features[n] = px(n)
+    if "scene_features" in src:
+        features["scene_features"] = src["scene_features"][0].detach().cpu().numpy()
+    if features:
+        kw["features"] = features
+    return kw
+
+
 class _Runner:
     def __init__(self, cfg: BenchConfig, log: Log) -> None:
         self.cfg, self.log = cfg, log
-        self.methods = cfg.methods or default_methods()
+        methods = cfg.methods or default_methods()
+        # A model with shipped weights is timed through the public API beside its bare call.
+        self.methods = [a for m in methods for a in ([m, Method(m.name, m.preset, api=True)]
+                                                     if cfg.api and not m.api and shipped_weights(m) else [m])]
         self.precision = resolve_precision(cfg.precision, cfg.device) if cfg.fast else "float32"
         self.models: dict[str, torch.nn.Module] = {}
         self.kind: dict[str, str] = {}
@@ -162,10 +205,15 @@ class _Runner:
             if m.is_oidn:
                 self.kind[m.label] = "oidn"
                 continue
+            if m.api:
+                continue  # after its model (below)
             torch.manual_seed(cfg.seed)
             model = build_model(m.name, m.preset).to(cfg.device)
             self.models[m.label] = prepare_inference(model, fast=cfg.fast, precision=self.precision)
             self.kind[m.label] = model.input_kind
+        for m in self.methods:
+            if m.api:
+                self.kind[m.label] = self.kind[m.bare.label]
         self.measured: dict[tuple[str, int | None], tuple[int, float]] = {}  # -> (pixels, seconds)
         self.entries: list[dict[str, Any]] = []
         self.flops: dict[tuple[str, int | None], float] = {}
@@ -228,8 +276,8 @@ class _Runner:
         keys: dict[str, tuple[Method, int | None]] = {}
         by_kind: dict[str, list[str]] = {"pixels": [], "samples": []}
         for m, s in entries:
-            if not m.is_oidn:
-                by_kind[self.kind[m.label]].append(m.label)
+            if not m.is_oidn and m.bare.label not in by_kind[self.kind[m.label]]:
+                by_kind[self.kind[m.label]].append(m.bare.label)
         inputs: dict[str, dict[str, torch.Tensor]] = {}
         avail = _available_bytes()
         for kind, labels in by_kind.items():
@@ -253,6 +301,12 @@ class _Runner:
 
                 calls[name] = lambda q=m.preset: oidn_denoise(oidn_in["radiance"], oidn_in["albedo"], oidn_in["normal"], quality=q,
                                                               threads=self.cfg.oidn_threads)
+            elif m.api:
+                import mcdenoise
+
+                kw = api_arrays(self.models[m.bare.label], inputs[self.kind[m.label]])
+                calls[name] = lambda kw=kw, w=str(shipped_weights(m)): mcdenoise.denoise(
+                    **kw, model=w, device=cfg.device, precision=self.precision)
             else:
                 model = self.models[m.label]
                 src = inputs[self.kind[m.label]]
@@ -294,7 +348,7 @@ class _Runner:
             self.measured[(m.label, s)] = (w * h, med)
             row: dict[str, Any] = {"method": m.label, "width": w, "height": h, "spp": s, "status": "ok",
                                    "median_s": med, "times_s": ts, "peak_bytes": peaks.get(name)}
-            if not m.is_oidn:
+            if not m.is_oidn and not m.api:
                 key = (m.label, s)
                 if key not in self.flops:
                     self.flops[key] = _flops_per_pixel(self.models[m.label], s, cfg.device)
@@ -339,7 +393,7 @@ def run_bench(cfg: BenchConfig, log: Log = _stderr) -> dict[str, Any]:
     training = []
     if cfg.train_steps > 0:
         for m in runner.methods:
-            if m.is_oidn:
+            if m.is_oidn or m.api:
                 continue
             try:
                 training.append(_train_throughput(m, cfg))
@@ -354,7 +408,7 @@ def run_bench(cfg: BenchConfig, log: Log = _stderr) -> dict[str, Any]:
     return {
         "machine": info,
         "config": {"sizes": [list(s) for s in cfg.sizes], "spp": list(cfg.spp), "warmup": cfg.warmup,
-                   "rounds": cfg.rounds, "budget_s": cfg.budget_s, "fast": cfg.fast, "device": cfg.device,
+                   "rounds": cfg.rounds, "budget_s": cfg.budget_s, "fast": cfg.fast, "device": cfg.device, "api": cfg.api,
                    "precision": runner.precision, "slow_s": cfg.slow_s,
                    "methods": [m.label for m in runner.methods], "train": {"batch": cfg.train_batch,
                    "crop": cfg.train_crop, "spp": cfg.train_spp, "steps": cfg.train_steps}},

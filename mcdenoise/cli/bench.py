@@ -7,7 +7,9 @@
     mcdenoise bench --docs docs/PERFORMANCE.md   # also replace the generated block there
 
 Methods are NAME (the small preset), NAME:PRESET, oidn (quality high) or oidn:fast; OIDN high and
-fast are always added. Rounds are interleaved over methods; see docs/PERFORMANCE.md.
+fast are always added. A model with shipped weights is also timed through the public API
+(`mcdenoise.denoise(...)`, as NAME:PRESET api) beside its bare call; --no-api leaves that out.
+Rounds are interleaved over methods; see docs/PERFORMANCE.md.
 """
 
 from __future__ import annotations
@@ -48,6 +50,8 @@ def add_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--precision", choices=("float32", "bfloat16", "auto"), default="auto",
                    help="convolution trunks: auto (bfloat16 where the device has it natively; default), float32, bfloat16")
     p.add_argument("--reference", action="store_true", help="time the reference paths (no RepVGG folding, no_grad)")
+    p.add_argument("--no-api", action="store_true",
+                   help="do not also time mcdenoise.denoise() for the models with shipped weights")
     p.add_argument("--from-json", type=Path, metavar="FILE", help="no measuring: print/write the tables of a saved --out FILE.json")
 
 
@@ -65,7 +69,7 @@ def run(args: argparse.Namespace) -> int:
     if args.threads:
         torch.set_num_threads(args.threads)
     over: dict[str, object] = {"device": args.device, "fast": not args.reference, "precision": args.precision,
-                               "oidn_threads": args.threads or None}
+                               "oidn_threads": args.threads or None, "api": not args.no_api}
     if args.models:
         known = {e.name for e in list_models()} | {"oidn"}
         methods = [parse_method(t) for t in dict.fromkeys([*DEFAULT_METHODS, *args.models])]
