@@ -88,3 +88,8 @@ def test_dataset_on_gpu(tmp_path: Path) -> None:
         assert "cuda_ad_rgb" in img.meta.renderer
         assert np.isfinite(img.read_noisy(["radiance"])["radiance"]).all()
     assert json.loads((root / "dataset.json").read_text())["views"] == 2
+    # Issue 18: the variant is recorded, and a model card's dataset command states it.
+    assert json.loads((root / "dataset.json").read_text())["variant"] == "cuda_ad_rgb"
+    from mcdenoise.models.ship import dataset_command
+
+    assert "--variant cuda_ad_rgb" in dataset_command(root)
