@@ -240,3 +240,18 @@ def test_cli_no_api_leaves_the_api_entries_out(capsys) -> None:
     assert main(["bench", "--models", "wskp", "--sizes", "16x16", "--spp", "1", "--rounds", "1", "--train-steps", "0",
                  "--no-api", "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["config"]["methods"] == ["oidn:high", "oidn:fast", "wskp:small"]
+
+
+def test_whole_path_of_a_combiner_counts_every_oidn_run_it_needs() -> None:
+    """Bug caught (issue 20): the prefiltered combiner's whole path was reported as its own time
+    plus OIDN high, leaving out the prefiltered OIDN run that is also its input (about 2x OIDN)."""
+    res = _fake_result()
+    e = lambda m, t: {"method": m, "width": 1920, "height": 1080, "spp": None, "status": "ok", "median_s": t,
+                      "times_s": [t], "peak_bytes": 2**20}
+    res["entries"] += [e("combine:small", 1.0), e("combine:ens", 1.2)]
+    text = markdown(res)
+    assert "combine:small 4,000 (1.33x OIDN high; with oidn:high)" in text
+    assert "combine:ens not measured (needs oidn:high and oidn:high-pf)" in text
+    res["entries"].append(e("oidn:high-pf", 6.0))
+    text = markdown(res)
+    assert "(3.4x OIDN high; with oidn:high + oidn:high-pf)" in text

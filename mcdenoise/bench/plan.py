@@ -37,6 +37,7 @@ TARGETS: tuple[tuple[str, int | None, float], ...] = (
     ("sbmc:small", 8, 10.0),
     # Issue 20: the combiner's own cost (OIDN's output is its input), so the whole path is <= 1.5x.
     ("combine:small", None, 0.5),
+    ("combine:ens", None, 0.5),
 )
 
 #: Beyond every registered model's ``small`` preset: the presets the papers' timings and the

@@ -22,6 +22,10 @@ def _ok(res: dict[str, Any]) -> list[dict[str, Any]]:
     return [e for e in res["entries"] if e["status"] == "ok"]
 
 
+#: Combiner presets whose candidates include OIDN on prefiltered guides (``oidn:high-pf``).
+PF_COMBINERS = ("combine:ens",)
+
+
 def _oidn(res: dict[str, Any], w: int, h: int, quality: str) -> float | None:
     for e in _ok(res):
         if e["method"] == f"oidn:{quality}" and (e["width"], e["height"]) == (w, h):
@@ -137,9 +141,18 @@ def markdown(res: dict[str, Any], command: str = "") -> str:
         comb = [e for e in rows if e["method"].startswith("combine:")]
         hi = _oidn(res, w, h, "high")
         if comb and hi:
-            lines += ["A combiner's time above is its own (OIDN's output is one of its inputs); with OIDN high "
-                      "first, the whole path takes " + ", ".join(
-                          f"{e['method']} {_ms(e['median_s'] + hi)} ({(e['median_s'] + hi) / hi:.3g}x OIDN high)" for e in comb) + ".", ""]
+            paths = []
+            for e in comb:
+                # the OIDN runs the combiner's candidates need: high, and prefiltered high for `ens`
+                need = ["high"] + (["high-pf"] if e["method"] in PF_COMBINERS else [])
+                pre = [_oidn(res, w, h, q) for q in need]
+                if None in pre:
+                    paths.append(f"{e['method']} not measured (needs oidn:{' and oidn:'.join(need)})")
+                    continue
+                t = e["median_s"] + sum(pre)
+                paths.append(f"{e['method']} {_ms(t)} ({t / hi:.3g}x OIDN high; with oidn:{' + oidn:'.join(need)})")
+            lines += ["A combiner's time above is its own (OIDN's outputs are its inputs); with the OIDN runs it "
+                      "needs first, the whole path takes " + ", ".join(paths) + ".", ""]
         lines.append("")
     lines += _api(res)
     lines += _scaling(res, sizes)

@@ -299,8 +299,9 @@ class _Runner:
             if m.is_oidn:
                 from mcdenoise.eval.oidn import oidn_denoise
 
-                calls[name] = lambda q=m.preset: oidn_denoise(oidn_in["radiance"], oidn_in["albedo"], oidn_in["normal"], quality=q,
-                                                              threads=self.cfg.oidn_threads)
+                calls[name] = lambda q=m.preset: oidn_denoise(oidn_in["radiance"], oidn_in["albedo"], oidn_in["normal"],
+                                                              quality=q.removesuffix("-pf"), threads=self.cfg.oidn_threads,
+                                                              prefilter="fast" if q.endswith("-pf") else None)
             elif m.api:
                 import mcdenoise
 
