@@ -145,11 +145,17 @@ def test_missing_channels_are_named(tmp_path, wskp, capfd):
 
 
 def test_sample_model_on_pixels_is_refused(tmp_path, capfd):
-    """Catches a sample model silently fed per-pixel data."""
+    """Catches a sample model silently fed per-pixel data, and (issue 21) a refusal that names as
+    missing the channels a Blender file has per pixel (radiance, albedo, normal, depth): it names
+    the per-sample buffers and only what the file lacks even per pixel."""
     _blender_exr(tmp_path / "r.exr")
     weights = _weights(tmp_path / "layer.safetensors", "layer")
-    _refused(capfd, ["denoise", str(tmp_path / "r.exr"), "-o", str(tmp_path / "o.exr"), "--model", weights],
-             "per-sample buffers")
+    argv = ["denoise", str(tmp_path / "r.exr"), "-o", str(tmp_path / "o.exr"), "--model", weights]
+    rc = main(argv)
+    line = _err_line(capfd)
+    assert rc == 1 and "per-sample buffers" in line and "specular" in line, line
+    named = {c.strip() for c in line.split("lacks:", 1)[1].split(",")}
+    assert not named & {"radiance", "albedo", "normal", "depth"}, line
 
 
 def test_size_mismatch(tmp_path, wskp, capfd):

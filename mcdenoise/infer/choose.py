@@ -83,14 +83,17 @@ def card_validation(card: dict[str, Any], spp: int = RANK_SPP) -> tuple[float, f
 def missing_channels(required: list[str], kind: str, inputs: Inputs) -> list[str]:
     """Channels of ``required`` (a model's ``required_channels()``) that ``inputs`` lacks.
 
-    A sample model on an input without per-sample buffers lacks ``"per-sample buffers"`` first.
+    A sample model on an input without per-sample buffers lacks ``"per-sample buffers"`` first,
+    then only the channels the input lacks even per pixel (a Blender file has radiance, albedo,
+    normal and depth per pixel: naming them as missing sent users looking for passes they had).
     """
     need = [c for c in required if c != "scene_features"]
-    have = inputs.channels(kind)
-    out = [c for c in need if c not in have]
     if kind == "samples" and inputs.samples is None:
-        return ["per-sample buffers (an image folder of `mcdenoise render`)"] + out
-    return out
+        have = inputs.channels("pixels")
+        return (["per-sample buffers (an image folder of `mcdenoise render`)"]
+                + [c for c in need if c not in have])
+    have = inputs.channels(kind)
+    return [c for c in need if c not in have]
 
 
 def _refuse(label: str, name: str, missing: list[str]) -> InputError:
