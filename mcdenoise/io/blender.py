@@ -8,9 +8,10 @@ The channel *names* are mapped in :mod:`mcdenoise.io.names` (``<ViewLayer>.Noisy
 * **Colour.** ``Noisy Image`` is written only while Blender's own denoiser is on (its result is
   then in ``Combined``). With the denoiser off there is no ``Noisy Image`` and the noisy colour is
   ``Combined``: :func:`colour_fallback` takes it, with a one-line note.
-* **Normals are in camera space** (x right, y up, z along the view direction), not world space as
-  our renderer writes them; they follow mirror and glass bounces to the next rough surface, and are
-  0 where no rough surface was found (sky, lights). Decision: when the file's header carries the
+* **Normals are in camera space** (x right, y up, z along the view direction: a surface facing
+  the camera reads z = -1), not world space as our renderer writes them; they follow mirror and
+  glass bounces to the next rough surface. A light seen directly has its own normal (an area
+  light's facing normal, a point light's normal toward the camera); the sky has 0. Decision: when the file's header carries the
   OpenEXR standard attribute ``worldToCamera`` (a 4x4 matrix, row-vector convention, camera
   space as above) the normals are rotated to world space (:func:`normals_to_world`); otherwise they
   are fed **as they are**. Blender 4.5 writes no camera matrix, so in practice they go in as camera
@@ -20,7 +21,9 @@ The channel *names* are mapped in :mod:`mcdenoise.io.names` (``<ViewLayer>.Noisy
   alike distribution. Guessing a camera (none is written) would be worse than either.
 * **Albedo exceeds 1 on lights and sky.** Cycles writes the emission colour where a light is seen
   directly or in a mirror (up to 1651 in issue 21's scenes) and the background colour on sky
-  pixels (up to 20), with normal 0 there; ours writes [0, 1] and 0 on a miss. The values are passed
+  pixels (up to 20 there, up to 4000 on a Nishita sky), normal 0 on the sky; ours writes [0, 1] and
+  0 on a miss. ``Denoising Depth`` is the distance along the camera ray and 0 on the sky, as ours.
+  (All checked on Blender 4.5 renders: ``tests/test_blender_cycles.py``.) The values are passed
   on unchanged (OIDN is given what Blender gives its own OIDN); every model treats a pixel with an
   albedo above 1 as an emitter, passed through unfiltered (:mod:`mcdenoise.models.emitters`).
 

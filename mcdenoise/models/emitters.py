@@ -3,9 +3,10 @@
 Our renderer writes albedo in [0, 1] and 0 on a miss. Other renderers do not: Cycles writes the
 emission colour into ``Denoising Albedo`` where a light is seen directly or in a mirror (values
 up to 1651 in issue 21's scenes) and the background colour on sky pixels (up to 20), with normal 0
-there. A model that demodulates by the albedo (``wskp``, ``wskp_mr``, ``kpcn``'s diffuse branch)
-divides by that value and multiplies the filtered neighbourhood back by it: a 1-2 px reflection of
-a point light became a 7x7 block of 10^5 (reference maximum 141).
+on the sky (a light seen directly keeps its own normal and depth in Blender 4.5). A model that
+demodulates by the albedo (``wskp``, ``wskp_mr``, ``kpcn``'s diffuse branch) divides by that value
+and multiplies the filtered neighbourhood back by it: a 1-2 px reflection of a point light became
+a 7x7 block of 10^5 (reference maximum 141).
 
 The rule, the same in every model that reads an albedo:
 
