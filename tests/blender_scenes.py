@@ -163,8 +163,11 @@ def build_glass(bpy, scene) -> None:
 BUILDERS = {"room": build_room, "dof": build_dof, "glass": build_glass}
 
 
-def render(scene_name: str, out: str, *, spp: int, size: int = 128, seed: int = 0, blender_denoise: bool = False) -> None:
-    """Build ``scene_name`` in a fresh Blender scene and write ``out`` (OpenEXR MultiLayer, float)."""
+def render(scene_name: str, out: str, *, spp: int, size: int = 128, seed: int = 0, blender_denoise: bool = False,
+           half: bool = False, border: tuple[float, float, float, float] | None = None) -> None:
+    """Build ``scene_name`` in a fresh Blender scene and write ``out`` (OpenEXR MultiLayer, float,
+    or half with ``half``); ``border`` = (xmin, xmax, ymin, ymax), fractions of the frame with y
+    up, renders and writes only that part (Blender's render region, cropped)."""
     import bpy
 
     bpy.ops.wm.read_factory_settings(use_empty=True)
@@ -194,6 +197,12 @@ def render(scene_name: str, out: str, *, spp: int, size: int = 128, seed: int = 
     scene.render.resolution_x = scene.render.resolution_y = size
     scene.render.resolution_percentage = 100
     scene.render.film_transparent = False
+    if half:
+        scene.render.image_settings.color_depth = "16"
+    if border is not None:
+        scene.render.use_border = scene.render.use_crop_to_border = True
+        (scene.render.border_min_x, scene.render.border_max_x,
+         scene.render.border_min_y, scene.render.border_max_y) = border
     bpy.ops.render.render(write_still=True)
 
 
@@ -247,8 +256,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--size", type=int, default=128)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--blender-denoise", action="store_true")
+    p.add_argument("--half", action="store_true", help="half-float passes (Blender's 'Float (Half)')")
+    p.add_argument("--border", type=float, nargs=4, metavar=("XMIN", "XMAX", "YMIN", "YMAX"),
+                   help="render only this region (fractions of the frame, y up), cropped")
     args = p.parse_args(argv)
-    render(args.scene, args.out, spp=args.spp, size=args.size, seed=args.seed, blender_denoise=args.blender_denoise)
+    render(args.scene, args.out, spp=args.spp, size=args.size, seed=args.seed, blender_denoise=args.blender_denoise,
+           half=args.half, border=None if args.border is None else tuple(args.border))
     return 0
 
 

@@ -8,6 +8,8 @@ half and float, a uint ID pass, Blender's string header attributes and PIZ compr
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import OpenEXR
 import pytest
@@ -15,6 +17,7 @@ import torch
 from safetensors.torch import save_file
 
 from mcdenoise.cli.main import main
+from mcdenoise.eval.oidn import oidn_available
 from mcdenoise.infer.sources import from_exr
 from mcdenoise.io import blender
 from mcdenoise.io.exr import read_exr_file, write_exr_file
@@ -216,3 +219,63 @@ def test_blender_reference_without_noisy_image_converts(tmp_path):
         folder = image_from_exr([noisy], tmp_path / "img", spp=8, reference=[ref], renderer="cycles")
     got = read_image(folder).read_reference()["radiance"]
     assert np.array_equal(got, np.stack([ch[f"ViewLayer.Combined.{c}"] for c in "RGB"]))
+
+
+#: A real Cycles file: Blender 4.5.15 (bpy), ``tests/blender_scenes.py`` glass scene, 8 spp, Blender's
+#: denoiser on, half-float colour passes, the 64x64 frame's 32x32 region around the 2 cm point light
+#: (Blender's render region, cropped). Regenerate with ``python tests/blender_scenes.py glass OUT
+#: --spp 8 --size 64 --blender-denoise --half --border 0.28125 0.78125 0.5 1.0``.
+REAL = Path(__file__).parent / "fixtures" / "blender" / "glass_light_8spp.exr"
+#: Highlight bound: no output value above FACTOR x the largest input value within RADIUS px, + EPS.
+FACTOR, RADIUS, EPS = 2.0, 10, 0.05
+
+
+def neighbourhood_max(img: np.ndarray, radius: int) -> np.ndarray:
+    """Per pixel, the largest value of any channel of ``img`` (3, H, W) within ``radius`` px."""
+    t = torch.from_numpy(np.ascontiguousarray(img.max(axis=0), dtype=np.float32))[None, None]
+    return torch.nn.functional.max_pool2d(t, 2 * radius + 1, stride=1, padding=radius)[0, 0].numpy()
+
+
+def assert_within_neighbourhood(out: np.ndarray, noisy: np.ndarray, what: str) -> None:
+    """The highlight bound (issue 21): no output value above FACTOR x its input neighbourhood's
+    largest value (+ EPS for dark regions)."""
+    bound = FACTOR * neighbourhood_max(noisy, RADIUS) + EPS
+    over = out.max(axis=0) / bound
+    worst = np.unravel_index(int(np.argmax(over)), over.shape)
+    assert over[worst] <= 1.0, (
+        f"{what}: output {out.max(axis=0)[worst]:.4g} at pixel {worst} exceeds {FACTOR} x "
+        f"{(bound[worst] - EPS) / FACTOR:.4g}, the largest input value within {RADIUS} px (+ {EPS})")
+
+
+def test_real_cycles_file_conventions():
+    """Catches a reader that misses Blender 4.5's conventions on a file Blender wrote: the colour is
+    Noisy Image (not Blender's denoised Combined), the point light seen directly has the emission
+    as albedo (> 1) and, unlike the sky, its own unit normal and depth; camera space has a surface
+    facing the camera at z < 0."""
+    _, ch = read_exr_file(REAL)
+    px = from_exr(REAL).pixels
+    noisy = np.stack([ch[f"ViewLayer.Noisy Image.{c}"] for c in "RGB"]).astype(np.float32)
+    assert np.array_equal(px["radiance"], noisy)
+    light = px["albedo"].max(axis=0) > 1
+    assert light.sum() == 1 and px["radiance"][:, light].min() > 100, px["radiance"][:, light]
+    assert np.isclose(np.linalg.norm(px["normal"][:, light]), 1.0, atol=1e-3) and px["depth"][0, light] > 0
+    assert px["normal"][2, ~light].max() < 0, "camera-space normals: the wall faces the camera at z < 0"
+
+
+@pytest.mark.parametrize("model", ["wskp", pytest.param("oidn", marks=pytest.mark.skipif(
+    not oidn_available(), reason="needs pyoidn 2.5.1"))])
+def test_real_cycles_file_point_light(tmp_path, capfd, model):
+    """Catches a model that blows up a 1-px point light Cycles saw directly (albedo 634, on a wall
+    it lights): shipped wskp without the emitter rule (mcdenoise/models/emitters.py) made it 7184
+    from 640.5, 11x; and an output that changes a pass of Blender's file (half passes included)."""
+    out_path = tmp_path / "out.exr"
+    rc = main(["denoise", str(REAL), "-o", str(out_path), "--model", model])
+    assert rc == 0, capfd.readouterr().err
+    _, src = read_exr_file(REAL)
+    _, got = read_exr_file(out_path)
+    _assert_kept(src, got)
+    assert set(got) - set(src) == {f"ViewLayer.Denoised.{c}" for c in "RGBA"}
+    out = np.stack([got[f"ViewLayer.Denoised.{c}"] for c in "RGB"])
+    noisy = np.stack([src[f"ViewLayer.Noisy Image.{c}"] for c in "RGB"]).astype(np.float32)
+    assert np.isfinite(out).all()
+    assert_within_neighbourhood(out, noisy, model)
