@@ -279,3 +279,46 @@ def test_real_cycles_file_point_light(tmp_path, capfd, model):
     noisy = np.stack([src[f"ViewLayer.Noisy Image.{c}"] for c in "RGB"]).astype(np.float32)
     assert np.isfinite(out).all()
     assert_within_neighbourhood(out, noisy, model)
+
+
+def _two_view_layers(path) -> dict[str, np.ndarray]:
+    """A file as Blender 4.5 writes two view layers, 'Beauty' without Denoising Data and 'Zeta'
+    with it (checked on a real render: the channels are sorted by name, so 'Beauty' comes first)."""
+    rng = np.random.default_rng(5)
+    ch: dict[str, np.ndarray] = {}
+    for layer, scale in (("Beauty", 1.0), ("Zeta", 3.0)):
+        for c in "RGBA":
+            ch[f"{layer}.Combined.{c}"] = np.full((H, W), scale * 0.5, np.float32)
+            ch[f"{layer}.Noisy Image.{c}"] = (rng.random((H, W)) * scale).astype(np.float32)
+    for c in "RGB":
+        ch[f"Zeta.Denoising Albedo.{c}"] = rng.random((H, W)).astype(np.float32)
+    for c in "XYZ":
+        ch[f"Zeta.Denoising Normal.{c}"] = rng.normal(size=(H, W)).astype(np.float32)
+    ch["Zeta.Denoising Depth.Z"] = (rng.random((H, W)) + 1).astype(np.float32)
+    write_exr_file(path, ch, HEADER)
+    return ch
+
+
+def test_one_view_layer_is_read(tmp_path, wskp, capfd):
+    """Catches colour and guides taken from different view layers (seen on a real two-layer
+    Cycles render: the colour came from 'Beauty', the first by name, and albedo, normal and depth
+    from 'Zeta', the only layer with Denoising Data; the result went into 'Beauty'). The layer with
+    the denoising passes is read whole, with a note naming it, and the result goes beside it."""
+    src, out = tmp_path / "two.exr", tmp_path / "out.exr"
+    ch = _two_view_layers(src)
+    with pytest.warns(blender.BlenderNote, match="reading 'Zeta'"):
+        px = from_exr(src).pixels
+    assert np.array_equal(px["radiance"], np.stack([ch[f"Zeta.Noisy Image.{c}"] for c in "RGB"]))
+    assert np.array_equal(px["albedo"], np.stack([ch[f"Zeta.Denoising Albedo.{c}"] for c in "RGB"]))
+    rc = main(["denoise", str(src), "-o", str(out), "--model", wskp, "--precision", "float32"])
+    err = capfd.readouterr().err
+    assert rc == 0, err
+    assert len([ln for ln in err.splitlines() if "view layers" in ln]) == 1, err
+    _, got = read_exr_file(out)
+    _assert_kept(ch, got)
+    assert set(got) - set(ch) == {f"Zeta.Denoised.{c}" for c in "RGBA"}
+    names = list(ch)
+    assert blender.view_layer(names) == "Zeta." and blender.colour_layer(names) == ("Zeta.", "Noisy Image")
+    # Without denoising passes anywhere, the first layer by name (as Blender's file lists them).
+    plain = [n for n in names if ".Denoising " not in n]
+    assert blender.view_layer(plain) == "Beauty." and blender.view_layers(names) == ["Beauty.", "Zeta."]

@@ -27,6 +27,8 @@ The channel *names* are mapped in :mod:`mcdenoise.io.names` (``<ViewLayer>.Noisy
   on unchanged (OIDN is given what Blender gives its own OIDN); every model treats a pixel with an
   albedo above 1 as an emitter, passed through unfiltered (:mod:`mcdenoise.models.emitters`).
 
+A file with several view layers is read from one (:func:`view_layer`), colour and guides alike.
+
 Output (:func:`blender_output`): every input channel is written back bit for bit (same pixel type),
 with every header attribute, and the result is added as its own pass ``<ViewLayer>.Denoised``
 (R, G, B and the colour pass's alpha), or written into ``Combined`` with ``replace_combined``, so
@@ -44,8 +46,8 @@ import numpy as np
 from mcdenoise.errors import McDenoiseError
 
 __all__ = [
-    "CYCLES_PASSES", "DENOISED_PASS", "BlenderNote", "is_cycles", "colour_layer", "colour_fallback",
-    "normals_to_world", "apply_conventions", "blender_output",
+    "CYCLES_PASSES", "DENOISED_PASS", "BlenderNote", "is_cycles", "view_layers", "view_layer", "colour_layer",
+    "colour_fallback", "normals_to_world", "apply_conventions", "blender_output",
 ]
 
 #: Pass names of a Cycles multi-layer EXR with denoising data (Blender 4.x).
@@ -73,24 +75,51 @@ def is_cycles(channel_names: list[str]) -> bool:
     return any(prefix and name in CYCLES_PASSES for prefix, name, _ in map(_pass_of, channel_names))
 
 
-def colour_layer(channel_names: list[str]) -> tuple[str, str] | None:
-    """``(view-layer prefix, pass)`` of the colour the denoiser reads: ``Noisy Image`` if there is
-    one, else ``Combined``; None when neither exists."""
-    found: dict[str, str] = {}
+def view_layers(channel_names: list[str]) -> list[str]:
+    """The view-layer prefixes (``"ViewLayer."``) that hold a Cycles pass, in name order."""
+    return sorted({prefix for prefix, name, _ in map(_pass_of, channel_names) if prefix and name in CYCLES_PASSES})
+
+
+#: What a view layer needs to be read, most important first (a layer is scored by how many it has).
+_WANTED = ("Noisy Image", "Denoising Albedo", "Denoising Normal", "Denoising Depth")
+
+
+def view_layer(channel_names: list[str]) -> str | None:
+    """The view layer (its prefix) whose passes are read, and beside which the result is written.
+
+    A file with several view layers (one per ``View Layer`` in Blender, each with its own passes)
+    is read from **one**: the layer with a colour pass (``Noisy Image`` or ``Combined``) that has
+    the most of ``Noisy Image`` and the three denoising passes, the first by name among equals
+    (OpenEXR sorts channels by name, so Blender's own layer order is not in the file). Reading the
+    colour of one layer and the guides of another (the first of each by name, as before) mixed
+    layers that may show different objects. None when no layer has a colour pass."""
+    passes: dict[str, set[str]] = {}
     for prefix, name, _ in map(_pass_of, channel_names):
-        if name in ("Noisy Image", "Combined") and name not in found:
-            found[name] = prefix
-    for name in ("Noisy Image", "Combined"):
-        if name in found:
-            return found[name], name
-    return None
+        if prefix:
+            passes.setdefault(prefix, set()).add(name)
+    candidates = [p for p in sorted(passes) if passes[p] & {"Noisy Image", "Combined"}]
+    if not candidates:
+        return None
+    return max(candidates, key=lambda p: (len(passes[p] & set(_WANTED)), -candidates.index(p)))
 
 
-def colour_fallback(layers: dict[str, np.ndarray], path: Path) -> np.ndarray | None:
+def colour_layer(channel_names: list[str]) -> tuple[str, str] | None:
+    """``(view-layer prefix, pass)`` of the colour the denoiser reads, in :func:`view_layer`'s layer:
+    ``Noisy Image`` if it has one, else ``Combined``; None when no layer has either."""
+    prefix = view_layer(channel_names)
+    if prefix is None:
+        return None
+    names = {name for p, name, _ in map(_pass_of, channel_names) if p == prefix}
+    return prefix, "Noisy Image" if "Noisy Image" in names else "Combined"
+
+
+def colour_fallback(layers: dict[str, np.ndarray], path: Path, prefix: str | None = None) -> np.ndarray | None:
     """``Combined``'s RGB (3, H, W) when the file has no ``Noisy Image`` (Blender's denoiser off),
-    with a :class:`BlenderNote`; None when there is no ``Combined`` either."""
+    with a :class:`BlenderNote`; None when there is no ``Combined`` either. ``prefix``: the view
+    layer to take it from (:func:`view_layer`); None takes the first."""
     for name, arr in layers.items():
-        if name.rpartition(".")[2] == "Combined" and arr.shape[0] >= 3:
+        layer, _, pass_name = name.rpartition(".")
+        if pass_name == "Combined" and arr.shape[0] >= 3 and (prefix is None or f"{layer}." == prefix):
             warnings.warn(f"{path}: no 'Noisy Image' pass (Blender's denoiser was off): denoising '{name}'",
                           BlenderNote, stacklevel=2)
             return arr[:3]
@@ -111,9 +140,16 @@ def normals_to_world(normal: np.ndarray, world_to_camera: Any) -> np.ndarray:
 
 def apply_conventions(layers: dict[str, np.ndarray], header: dict[str, Any], path: Path) -> dict[str, np.ndarray]:
     """Our reading of a Cycles file's layers (from :func:`mcdenoise.io.exr.read_exr`), see the
-    module docstring: the ``Combined`` fallback and world-space normals when the header allows."""
+    module docstring: the ``Combined`` fallback and world-space normals when the header allows;
+    a note naming the view layer read when the file has several (:func:`view_layer`)."""
+    names = [c.name for c in header.get("channels", ())]
+    prefix = view_layer(names) if names else None
+    others = [p for p in view_layers(names) if p != prefix]
+    if prefix is not None and others:
+        warnings.warn(f"{path}: {len(others) + 1} view layers; reading '{prefix[:-1]}' (the one with the most "
+                      f"denoising passes), not {', '.join(repr(p[:-1]) for p in others)}", BlenderNote, stacklevel=2)
     if "radiance" not in layers:
-        rgb = colour_fallback(layers, path)
+        rgb = colour_fallback(layers, path, prefix)
         if rgb is not None:
             layers["radiance"] = rgb
     w2c = header.get("worldToCamera")

@@ -166,15 +166,23 @@ def group_channels(
     Returns ``layer -> ([(exr channel, our component), ...] in our component order, scale)``;
     ``scale`` multiplies the values (``1/spp`` for per-sample variances, else 1).
     """
+    from mcdenoise.io.blender import view_layer
+
     out: dict[str, tuple[list[tuple[str, str]], float]] = {}
     by_layer: dict[str, list[str]] = {}
     for name in channel_names:
         layer, comp = split_channel(name)
         by_layer.setdefault(layer, []).append(comp)
+    # A Cycles file with several view layers is read from one (io/blender.py view_layer): the
+    # passes of the others keep their own names rather than lend a guide to another layer's colour.
+    cycles_prefix = view_layer(list(channel_names))
     for layer, comps in by_layer.items():
         rename = lookup_layer(layer, filename=filename)
         if rename is not None and rename.per_sample_variance and spp is None:
             rename = None  # cannot convert without spp: keep it under its own name
+        if (rename is not None and rename.scheme == "cycles" and cycles_prefix is not None
+                and layer[: len(layer) - len(rename.layer)] != cycles_prefix):
+            rename = None  # another view layer's pass
         if rename is not None:
             cmap = dict(rename.components)
             target = rename.channel
