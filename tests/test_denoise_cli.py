@@ -13,6 +13,7 @@ from safetensors.torch import save_file
 
 from mcdenoise.cli.main import main
 from mcdenoise.data.format import ImageMeta, write_image
+from mcdenoise.eval.oidn import oidn_available
 from mcdenoise.io.exr import read_exr, write_exr_raw
 from mcdenoise.models import build_model, synthetic_batch
 
@@ -156,6 +157,22 @@ def test_sample_model_on_pixels_is_refused(tmp_path, capfd):
     assert rc == 1 and "per-sample buffers" in line and "specular" in line, line
     named = {c.strip() for c in line.split("lacks:", 1)[1].split(",")}
     assert not named & {"radiance", "albedo", "normal", "depth"}, line
+
+
+@pytest.mark.skipif(not oidn_available(), reason="needs pyoidn 2.5.1")
+def test_oidn_names_the_guides_it_reads(tmp_path, capfd):
+    """Catches the 'channels:' line of OIDN naming albedo and normal for a file that has neither
+    (a Cycles render without Denoising Data; seen on a real one): OIDN reads the colour alone."""
+    rng = np.random.default_rng(2)
+    write_exr_raw(tmp_path / "r.exr", {f"ViewLayer.Noisy Image.{c}": rng.random((H, W)).astype(np.float32)
+                                       for c in "RGB"})
+    rc = main(["denoise", str(tmp_path / "r.exr"), "-o", str(tmp_path / "o.exr")])
+    cap = capfd.readouterr()
+    assert rc == 0, cap.err
+    assert "channels: radiance (per-pixel)" in cap.out, cap.out
+    _blender_exr(tmp_path / "full.exr")
+    assert main(["denoise", str(tmp_path / "full.exr"), "-o", str(tmp_path / "o2.exr"), "--model", "oidn"]) == 0
+    assert "channels: radiance, albedo, normal (per-pixel)" in capfd.readouterr().out
 
 
 def test_size_mismatch(tmp_path, wskp, capfd):

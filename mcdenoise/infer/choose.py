@@ -100,11 +100,16 @@ def _refuse(label: str, name: str, missing: list[str]) -> InputError:
     return InputError(f"model {name!r} needs channels that {label} lacks: {', '.join(missing)}")
 
 
-def _oidn_info(why: str) -> dict[str, Any]:
+def _oidn_info(why: str, inputs: Inputs) -> dict[str, Any]:
+    """OIDN's info; ``channels`` are those it reads from ``inputs``: the colour, albedo when
+    present and normal only beside it (``mcdenoise.data.oidn_input.oidn_guides``'s rule; it said
+    albedo and normal also for a file that had neither)."""
     from mcdenoise.eval.oidn import version
 
+    have = inputs.channels("pixels")
+    guides = [c for c in ("albedo", "normal") if c in have] if "albedo" in have else []
     return {"name": "oidn", "preset": "high", "source": "library", "weights": f"Open Image Denoise {version()}",
-            "label": "oidn", "why": why, "channels": ["radiance", "albedo", "normal"], "precision": "float32"}
+            "label": "oidn", "why": why, "channels": ["radiance", *guides], "precision": "float32"}
 
 
 def _fallback_rank(name: str) -> tuple[int, str]:
@@ -130,7 +135,7 @@ def choose_model(inputs: Inputs, spec: str | None = None, *, device: torch.devic
     if spec == OIDN_NAME:
         if not oidn_available():
             raise InputError("--model oidn: Open Image Denoise is not installed (pip install 'pyoidn==2.5.1.0')")
-        return OIDNMethod(), _oidn_info("as asked")
+        return OIDNMethod(), _oidn_info("as asked", inputs)
     if spec is not None:
         model, info = load_denoiser(spec, preset=preset, device=device)
         missing = missing_channels(model.required_channels(), model.input_kind, inputs)
@@ -152,7 +157,7 @@ def choose_model(inputs: Inputs, spec: str | None = None, *, device: torch.devic
             rank = (0, score, "") if score is not None else (1, 0.0, "")
             candidates.append((rank, _fallback_rank(sw.name), sw, score))
         if not candidates and oidn_available() and "radiance" in inputs.channels("pixels"):
-            return OIDNMethod(), _oidn_info("no shipped model has the inputs it needs here")
+            return OIDNMethod(), _oidn_info("no shipped model has the inputs it needs here", inputs)
         if not candidates:
             if not refused:
                 raise InputError("no shipped models are installed; pass --model NAME|WEIGHTS (a .safetensors file or a run folder)")
@@ -169,7 +174,7 @@ def choose_model(inputs: Inputs, spec: str | None = None, *, device: torch.devic
             if not beat:
                 return OIDNMethod(), _oidn_info(
                     f"no shipped model for these inputs beats OIDN 2.5.1 high on the third-party validation scenes "
-                    f"(relMSE at {RANK_SPP} spp in the model cards)")
+                    f"(relMSE at {RANK_SPP} spp in the model cards)", inputs)
             beat.sort(key=lambda b: (b[0], b[1]))
             _, _, best, (mine, oidn) = beat[0]
             model, info = load_denoiser(best.name, preset=best.preset, device=device)
