@@ -50,8 +50,9 @@ def test_oidn_is_picked_when_no_model_beats_it(monkeypatch: pytest.MonkeyPatch, 
     _fake_shipped(monkeypatch, {"wskp": 0.9, "kpcn": 0.15}, oidn=0.06)
     model, info = choose_model(_inputs(**guides))
     assert isinstance(model, OIDNMethod) and info["name"] == "oidn"
-    # With every input wskp needs, it is a candidate and loses on its card; else none qualifies.
-    assert ("beats OIDN" if guides.get("depth") else "has the inputs") in info["why"]
+    # With albedo and normal the ens combiner is a candidate (its card says nothing here), with depth
+    # wskp too (it loses on its card); with less, no shipped model has the inputs.
+    assert ("beats OIDN" if guides.get("normal") else "has the inputs") in info["why"]
 
 
 def test_a_model_that_beats_oidn_is_picked_by_its_validation(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -70,3 +71,18 @@ def test_oidn_is_a_model_name_everywhere(tmp_path) -> None:
     assert out.shape == c.shape and np.isfinite(out).all()
     assert card_validation({"validation": {"spp": {"8": {"model": {"relmse": 1}, "oidn-high": {"relmse": 2}}}}}) == (1.0, 2.0)
     assert card_validation({}) is None
+
+
+def test_the_shipped_combiner_is_picked_by_its_own_card_for_colour_albedo_normal() -> None:
+    """Catches the shipped ens combiner left out of the pick (or picked without the guides it
+    needs): its card's third-party validation beats OIDN, so colour + albedo + normal gets it,
+    and colour alone gets OIDN."""
+    from mcdenoise.models.weights import shipped
+
+    card = next(sw.card for sw in shipped() if sw.name == "combine" and sw.preset == "ens")
+    mine, oidn = card_validation(card)
+    assert mine < oidn
+    model, info = choose_model(_inputs(albedo=True, normal=True))
+    assert info["name"] == "combine" and info["preset"] == "ens", info["why"]
+    model, info = choose_model(_inputs())
+    assert isinstance(model, OIDNMethod)

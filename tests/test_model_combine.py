@@ -181,3 +181,25 @@ def test_prefiltered_oidn_channel_is_cached_apart_from_the_plain_one(tmp_path: P
     got = input_arrays(im, ["radiance", "oidn", "oidn_pf"], "pixels", spp=3)
     np.testing.assert_array_equal(got["oidn_pf"], pf)
     np.testing.assert_array_equal(got["oidn"], plain)
+
+
+def test_a_halo_over_a_missed_pixel_gives_way_to_the_noisy_mean() -> None:
+    """Catches the rich-world failure: OIDN spreads a bright bulb over a dark sky whose samples all
+    missed the scene (albedo and normal 0); the combination there must fall back to the noisy
+    mean, and nowhere else (a pixel with a surface, or a miss near its noisy mean, is untouched)."""
+    torch.manual_seed(0)
+    model = build_model("combine", "ens").eval()
+    batch = synthetic_batch(model, height=8, width=8)
+    for k in ("oidn", "oidn_pf"):
+        batch[k] = torch.full_like(batch[k], 2.0)
+    batch["radiance"] = torch.full_like(batch["radiance"], 0.007)
+    batch["albedo"][..., :4] = 0
+    batch["normal"][..., :4] = 0  # left half: every sample missed
+    batch["radiance"][..., 0, 4:] = 3.0  # one row of the surface half: noisy near OIDN
+    with torch.no_grad():
+        out = model(batch)
+        model.config.miss_halo = 0
+        off = model(batch)
+    torch.testing.assert_close(out[..., :4], batch["radiance"][..., :4])
+    torch.testing.assert_close(out[..., 4:], off[..., 4:])
+    assert float(off[..., :4].min()) > 1.0  # without the rule the halo stays
