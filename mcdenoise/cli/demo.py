@@ -71,7 +71,9 @@ def run(args: argparse.Namespace) -> int:
     t_start = time.perf_counter()
     out: Path = args.out
     folder = out / "render" / Path(args.scene).stem
-    models = args.models if args.models is not None else [s.name for s in shipped() if s.preset == "small"]
+    # Every shipped model: `small` presets by name, others (the ens combiner) by their weights file
+    models = args.models if args.models is not None else [s.name if s.preset == "small" else str(s.weights)
+                                                           for s in shipped()]
 
     if _matches(folder, args) and not args.rerender:
         _say(f"[1/3] render: reusing {folder} (same size, spp, reference spp and seed; --rerender renders again)")
