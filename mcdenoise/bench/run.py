@@ -4,18 +4,16 @@ made by :mod:`mcdenoise.bench.report`."""
 
 from __future__ import annotations
 
-import datetime
 import os
-import platform
 import statistics
 import sys
 import time
 from typing import Any, Callable
 
 import torch
-import torch.nn.functional as F
 from torch.utils.flop_counter import FlopCounterMode
 
+from mcdenoise.bench.machine import available_bytes, machine_info, peak_conv_gflops
 from mcdenoise.bench.memory import MEMORY_METHOD, peak_call_memory
 from mcdenoise.bench.plan import ANCHOR_SPP, BenchConfig, Method, default_methods, priority
 from mcdenoise.bench.timing import busy_warning, interleaved_times, median_time, synchronizer
@@ -30,71 +28,6 @@ Log = Callable[[str], None]
 
 def _stderr(msg: str) -> None:
     print(msg, file=sys.stderr, flush=True)
-
-
-def machine_info(device: str, oidn_threads: int | None = None) -> dict[str, Any]:
-    """CPU model, cores, memory, torch and OIDN versions and thread counts, load average, date."""
-    cpu = platform.processor() or platform.machine()
-    try:
-        with open("/proc/cpuinfo") as f:
-            cpu = next((l.split(":", 1)[1].strip() for l in f if l.startswith("model name")), cpu)
-    except OSError:
-        pass
-    info: dict[str, Any] = {
-        "date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
-        "cpu": cpu, "cores": os.cpu_count(), "torch": torch.__version__, "torch_threads": torch.get_num_threads(),
-        "python": platform.python_version(), "device": device,
-    }
-    try:
-        with open("/proc/meminfo") as f:
-            mem = {l.split(":")[0]: int(l.split()[1]) for l in f}
-        info["memory_gib"] = round(mem["MemTotal"] / 2**20, 1)
-    except (OSError, KeyError, ValueError):
-        pass
-    if hasattr(os, "getloadavg"):
-        info["load_start"] = round(os.getloadavg()[0], 2)
-    if device.startswith("cuda"):
-        info["gpu"] = torch.cuda.get_device_name(torch.device(device))
-    try:
-        from mcdenoise.eval.oidn import version
-
-        info["oidn"] = version()
-        from mcdenoise.eval.oidn import device_threads
-
-        info["oidn_threads"] = device_threads(oidn_threads)
-    except Exception as e:  # noqa: BLE001 -- reported, not fatal: OIDN entries then fail alike
-        info["oidn"] = f"unavailable ({e})"
-    return info
-
-
-def _available_bytes() -> int:
-    try:
-        with open("/proc/meminfo") as f:
-            mem = {l.split(":")[0]: int(l.split()[1]) for l in f}
-        return mem["MemAvailable"] * 1024
-    except (OSError, KeyError, ValueError):
-        return 8 << 30
-
-
-def peak_conv_gflops(channels: int, side: int, device: str, repeats: int = 5, precision: str = "float32") -> float:
-    """GFLOP/s of one large 3x3 convolution ``(1, channels, side, side)``: the machine's practical
-    peak for the layers our models are made of (a multiply-add counts 2). ``bfloat16``: in
-    bfloat16 and channels_last, as the models' convolution trunks then run."""
-    g = torch.Generator().manual_seed(0)
-    x = torch.randn((1, channels, side, side), generator=g).to(device)
-    w = torch.randn((channels, channels, 3, 3), generator=g).to(device) * 0.01
-    if precision == "bfloat16":
-        x = x.to(torch.bfloat16, memory_format=torch.channels_last)
-        w = w.to(torch.bfloat16, memory_format=torch.channels_last)
-    flops = 2.0 * channels * channels * 9 * side * side
-    sync = synchronizer(device)
-
-    def call() -> None:
-        with torch.inference_mode():
-            F.conv2d(x, w, padding=1)
-        sync()
-
-    return flops / median_time(call, repeats, warmup=1) / 1e9
 
 
 class _Channels:
@@ -279,7 +212,7 @@ class _Runner:
             if not m.is_oidn and m.bare.label not in by_kind[self.kind[m.label]]:
                 by_kind[self.kind[m.label]].append(m.bare.label)
         inputs: dict[str, dict[str, torch.Tensor]] = {}
-        avail = _available_bytes()
+        avail = available_bytes()
         for kind, labels in by_kind.items():
             if not labels:
                 continue
