@@ -160,3 +160,17 @@ def test_documented_example_runs(monkeypatch, tmp_path):
     namespace: dict = {}
     exec(compile(blocks[0], "docs/DENOISE.md", "exec"), namespace)
     assert namespace["clean"].shape == namespace["color"].shape
+
+
+def test_the_fast_finite_check_counts_exactly() -> None:
+    """Catches the one-pass finite check (a sum) missing a NaN or Inf, or reporting values as
+    non-finite when only the sum overflowed (3e38 x 16 is Inf in float32)."""
+    from mcdenoise.infer.sources import _sanitize
+
+    big = np.full((3, 4, 4), 3e38, np.float32)
+    out, n = _sanitize(big)
+    assert n == 0 and np.array_equal(out, big)
+    bad = np.ones((3, 4, 4), np.float32)
+    bad[0, 1, 1], bad[2, 3, 0], bad[1, 0, 2] = np.nan, np.inf, -np.inf
+    out, n = _sanitize(bad)
+    assert n == 3 and np.isfinite(out).all() and out[0, 1, 1] == 0

@@ -46,6 +46,11 @@ class InputError(McDenoiseError):
 def _sanitize(arr: np.ndarray) -> tuple[np.ndarray, int]:
     """float32 copy-if-needed of ``arr`` with NaN/Inf set to 0, and how many there were."""
     arr = np.asarray(arr, dtype=np.float32)
+    # One pass without a mask first (1 ms against 3.7 for the mask at 1080p, issue 18): any NaN or
+    # Inf makes the sum non-finite; a sum that overflows on finite values only falls through to
+    # the exact count below.
+    if np.isfinite(arr.sum()):
+        return arr, 0
     bad = ~np.isfinite(arr)
     n = int(bad.sum())
     if n:
