@@ -255,3 +255,13 @@ def test_whole_path_of_a_combiner_counts_every_oidn_run_it_needs() -> None:
     res["entries"].append(e("oidn:high-pf", 6.0))
     text = markdown(res)
     assert "(3.4x OIDN high; with oidn:high + oidn:high-pf)" in text
+
+
+def test_interleaved_times_settles_after_a_switch_of_library() -> None:
+    """Bug caught (issue 18): the model timed right after OIDN in each round paid a first-call
+    penalty (1.8x) that the others did not; after a switch of group the call is made once untimed."""
+    order: list[str] = []
+    fns = {n: (lambda n=n: order.append(n)) for n in ("oidn", "a", "b")}
+    out = interleaved_times(fns, 2, groups={"oidn": "oidn", "a": "torch", "b": "torch"})
+    assert order == ["oidn", "a", "a", "b", "oidn", "oidn", "a", "a", "b"]
+    assert all(len(v) == 2 for v in out.values())

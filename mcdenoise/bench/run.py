@@ -275,7 +275,8 @@ class _Runner:
                 m, s = keys[name]
                 self.entries.append({"method": m.label, "width": w, "height": h, "spp": s, "status": "error",
                                      "reason": " ".join(str(e).split())[:200]})
-        times = interleaved_times(ok, cfg.rounds, sync=sync, max_rounds=caps)
+        groups = {name: ("oidn" if keys[name][0].is_oidn else "torch") for name in ok}
+        times = interleaved_times(ok, cfg.rounds, sync=sync, max_rounds=caps, groups=groups)
         for name, ts in times.items():
             m, s = keys[name]
             med = statistics.median(ts)

@@ -66,6 +66,7 @@ def interleaved_times(
     sync: Callable[[], None] = lambda: None,
     on_round: Callable[[int], None] | None = None,
     max_rounds: Mapping[str, int] | None = None,
+    groups: Mapping[str, str] | None = None,
 ) -> dict[str, list[float]]:
     """Time every function once per round, round-robin: ``{name: [seconds per round]}``.
 
@@ -74,12 +75,22 @@ def interleaved_times(
     starts and before it stops, so queued GPU work is counted in the call that queued it.
     Warm-up is the caller's (an untimed round). ``max_rounds`` caps the rounds of some
     functions (slow ones): they take part in the first rounds only, still interleaved.
+    ``groups`` names each function's library (``"oidn"``, ``"torch"``): the first call after a
+    call of another group is made once untimed before the timed one. Measured (issue 18): the
+    first torch call after an OIDN call took 1.8x its steady time, even 2 s later, so whichever
+    model came right after OIDN in the round order paid it (wskp 152 ms in one run, 467 in the
+    next, with the API call beside it steady).
     """
     out: dict[str, list[float]] = {name: [] for name in fns}
+    last: str | None = None
     for r in range(rounds):
         for name, fn in fns.items():
             if max_rounds is not None and r >= max_rounds.get(name, rounds):
                 continue
+            group = groups.get(name) if groups is not None else None
+            if group is not None and last is not None and group != last:
+                fn()  # untimed: settle after the other library's call
+            last = group
             sync()
             t0 = time.perf_counter()
             fn()
