@@ -1,7 +1,8 @@
 """Probe: relMSE/PSNR of OIDN 2.5.1 variants and simple ensembles on image folders with references.
 
 Variants: quality high/fast, with OIDN-prefiltered guides (albedo and normal denoised by OIDN
-alone, then cleanAux), and the mean of candidates. Prints one table per spp.
+``fast`` alone, then cleanAux: ``oidn_denoise(..., prefilter="fast")``, the mode the ``ens``
+combiner uses), and the mean of candidates. Prints one table per spp.
 
     python scripts/oidn_variants_probe.py data/rich_val data/scene_inputs --spp 4 8 16
 """
@@ -16,31 +17,7 @@ import numpy as np
 from mcdenoise.data.image_folder import ImageFolder
 from mcdenoise.data.stats import pixel_stats
 from mcdenoise.eval.metrics import psnr, relmse
-
-
-def prefilter(pyoidn, aux: np.ndarray, kind: str, quality: str) -> np.ndarray:
-    """OIDN run on one guide alone (its documented prefiltering mode): (3,H,W) -> (3,H,W)."""
-    dev = pyoidn.Device(pyoidn.OIDN_DEVICE_TYPE_CPU)
-    dev.commit()
-    flt = pyoidn.Filter(dev, pyoidn.OIDN_FILTER_TYPE_RT)
-    x = np.ascontiguousarray(np.moveaxis(aux, 0, -1), dtype=np.float32)
-    out = np.empty_like(x)
-    flt.set_image(kind, x, pyoidn.OIDN_FORMAT_FLOAT3)
-    flt.set_image("output", out, pyoidn.OIDN_FORMAT_FLOAT3)
-    flt.set_quality({"high": pyoidn.OIDN_QUALITY_HIGH, "fast": pyoidn.OIDN_QUALITY_FAST}[quality])
-    flt.commit()
-    flt.execute()
-    err = dev.get_error()
-    if err:
-        raise RuntimeError(err)
-    flt.release(); dev.release()
-    return np.moveaxis(out, -1, 0).copy()
-
-
-def den(pyoidn, c, a, n, quality, clean):
-    f = lambda x: np.ascontiguousarray(np.moveaxis(x, 0, -1), dtype=np.float32)
-    out = pyoidn.denoise(f(c), f(a), f(n), hdr=True, clean_aux=clean, quality=quality)
-    return np.moveaxis(out, -1, 0)
+from mcdenoise.eval.oidn import oidn_denoise, oidn_prefilter
 
 
 def folders(roots):
@@ -56,7 +33,6 @@ def main() -> None:
     ap.add_argument("roots", nargs="+")
     ap.add_argument("--spp", nargs="+", type=int, default=[4, 8, 16])
     a = ap.parse_args()
-    import pyoidn
     rows: dict[tuple[str, int], dict[str, list[float]]] = {}
     for p in folders(a.roots):
         f = ImageFolder(p)
@@ -71,16 +47,16 @@ def main() -> None:
             hB = {n: pixel_stats(v[1::2])[0] for n, v in smp.items()}
             cand = {}
             cand["noisy"] = c
-            cand["high"] = den(pyoidn, c, al, nr, "high", False)
-            cand["fast"] = den(pyoidn, c, al, nr, "fast", False)
-            alp, nrp = prefilter(pyoidn, al, "albedo", "high"), prefilter(pyoidn, nr, "normal", "high")
-            cand["high_pf"] = den(pyoidn, c, alp, nrp, "high", True)
-            cand["fast_pf"] = den(pyoidn, c, alp, nrp, "fast", True)
+            cand["high"] = oidn_denoise(c, al, nr, quality="high")
+            cand["fast"] = oidn_denoise(c, al, nr, quality="fast")
+            alp, nrp = oidn_prefilter(al, "albedo"), oidn_prefilter(nr, "normal")
+            cand["high_pf"] = oidn_denoise(c, alp, nrp, quality="high", clean_aux=True)
+            cand["fast_pf"] = oidn_denoise(c, alp, nrp, quality="fast", clean_aux=True)
             cand["mean(high,fast)"] = 0.5 * (cand["high"] + cand["fast"])
             cand["mean(high,high_pf)"] = 0.5 * (cand["high"] + cand["high_pf"])
             cand["mean4"] = 0.25 * (cand["high"] + cand["fast"] + cand["high_pf"] + cand["fast_pf"])
-            dA = den(pyoidn, hA["radiance"], alp, nrp, "high", True)
-            dB = den(pyoidn, hB["radiance"], alp, nrp, "high", True)
+            dA = oidn_denoise(hA["radiance"], alp, nrp, clean_aux=True)
+            dB = oidn_denoise(hB["radiance"], alp, nrp, clean_aux=True)
             cand["mean(halves_pf)"] = 0.5 * (dA + dB)
             names = ["high", "fast", "high_pf", "fast_pf"]
             stack = np.stack([cand[n] for n in names])

@@ -252,3 +252,13 @@ def test_prefilter_refuses_what_it_cannot_do() -> None:
         oidn_prefilter(noisy, "color")
     with pytest.raises(OIDNError, match="prefilter quality"):
         oidn_denoise(noisy, *_guides(noisy.shape), prefilter="best")
+
+
+def test_quality_names_with_prefilter_parse_in_one_place() -> None:
+    """Catches eval, bench and the OIDN method spelling ``high-pf`` differently (one of them
+    passing ``high-pf`` to OIDN, or dropping the prefilter)."""
+    from mcdenoise.eval.oidn import parse_quality
+
+    assert parse_quality("high") == ("high", None) and parse_quality("fast-pf") == ("fast", "fast")
+    with pytest.raises(OIDNError, match="optionally with -pf"):
+        parse_quality("best-pf")

@@ -230,11 +230,12 @@ class _Runner:
             name = f"{m.label}@{s}" if s is not None else m.label
             keys[name] = (m, s)
             if m.is_oidn:
-                from mcdenoise.eval.oidn import oidn_denoise
+                from mcdenoise.eval.oidn import oidn_denoise, parse_quality
 
-                calls[name] = lambda q=m.preset: oidn_denoise(oidn_in["radiance"], oidn_in["albedo"], oidn_in["normal"],
-                                                              quality=q.removesuffix("-pf"), threads=self.cfg.oidn_threads,
-                                                              prefilter="fast" if q.endswith("-pf") else None)
+                quality, prefilter = parse_quality(m.preset)
+                calls[name] = lambda q=quality, pf=prefilter: oidn_denoise(
+                    oidn_in["radiance"], oidn_in["albedo"], oidn_in["normal"], quality=q, threads=self.cfg.oidn_threads,
+                    prefilter=pf)
             elif m.api:
                 import mcdenoise
 

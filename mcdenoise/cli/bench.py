@@ -80,9 +80,10 @@ def run(args: argparse.Namespace) -> int:
         for m in methods:
             if not m.is_oidn and m.preset not in presets[m.name]:
                 raise McDenoiseError(f"model {m.name} has no preset {m.preset!r}; presets: {', '.join(sorted(presets[m.name]))}")
-            if m.is_oidn and m.preset.removesuffix("-pf") not in ("high", "balanced", "fast"):
-                raise McDenoiseError(f"oidn quality {m.preset!r}: expected high, balanced or fast, optionally with -pf "
-                                     "(guides prefiltered by OIDN fast first)")
+            if m.is_oidn:
+                from mcdenoise.eval.oidn import parse_quality
+
+                parse_quality(m.preset)  # OIDNError (one line) for an unknown quality
         over["methods"] = methods
     for flag, field in (("sizes", "sizes"), ("spp", "spp"), ("rounds", "rounds"), ("budget", "budget_s"),
                         ("train_steps", "train_steps")):

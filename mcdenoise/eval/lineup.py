@@ -28,12 +28,13 @@ def build_methods(models: Sequence[str | os.PathLike], oidn: Sequence[str], clas
 
     methods: list[Method] = [NoisyMethod()]
     if oidn:
-        from mcdenoise.eval.oidn import QUALITIES, _pyoidn
+        from mcdenoise.eval.oidn import OIDNError, _pyoidn, parse_quality
 
         for q in oidn:
-            if q.removesuffix("-pf") not in QUALITIES:
-                raise EvalError(f"OIDN quality {q!r}: expected one of {', '.join(QUALITIES)}, "
-                                f"each optionally with -pf (guides prefiltered by OIDN first)")
+            try:
+                parse_quality(q)
+            except OIDNError as e:
+                raise EvalError(str(e)) from None
         _pyoidn()  # one-line OIDNError now rather than after the first image
         methods += [OIDNMethod(q, oidn_threads) for q in dict.fromkeys(oidn)]
     if classic:

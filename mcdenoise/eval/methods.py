@@ -102,8 +102,9 @@ class OIDNMethod(Method):
 
     def __init__(self, quality: str, threads: int | None = None) -> None:
         super().__init__(f"oidn-{quality}")
-        self.quality = quality.removesuffix("-pf")
-        self.prefilter = "fast" if quality.endswith("-pf") else None
+        from mcdenoise.eval.oidn import parse_quality
+
+        self.quality, self.prefilter = parse_quality(quality)
         self.threads = threads
         self._used: int | None = None
 

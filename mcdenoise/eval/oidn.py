@@ -34,10 +34,24 @@ import numpy as np
 
 from mcdenoise.errors import McDenoiseError
 
-__all__ = ["OIDNError", "QUALITIES", "oidn_available", "oidn_denoise", "oidn_prefilter", "device_threads", "version"]
+__all__ = ["OIDNError", "QUALITIES", "oidn_available", "oidn_denoise", "oidn_prefilter", "parse_quality", "device_threads", "version"]
 
 #: OIDN's quality presets, best and slowest first; ``high`` is OIDN's default.
 QUALITIES: tuple[str, ...] = ("high", "balanced", "fast")
+
+#: Suffix of a quality name (``high-pf``) asking for guides prefiltered by OIDN ``fast`` first.
+PREFILTERED_SUFFIX = "-pf"
+
+
+def parse_quality(spec: str) -> tuple[str, str | None]:
+    """``"high"`` -> ``("high", None)``; ``"high-pf"`` -> ``("high", "fast")``: the quality and the
+    ``prefilter`` of :func:`oidn_denoise`, as every command spells them."""
+    quality = spec.removesuffix(PREFILTERED_SUFFIX)
+    if quality not in QUALITIES:
+        raise OIDNError(f"OIDN quality {spec!r}: expected one of {', '.join(QUALITIES)}, each optionally with "
+                        f"{PREFILTERED_SUFFIX} (guides prefiltered by OIDN fast first)")
+    return quality, ("fast" if spec.endswith(PREFILTERED_SUFFIX) else None)
+
 
 _INSTALL_HINT = "install it with: pip install 'pyoidn==2.5.1.0' (or mcdenoise's 'oidn' extra)"
 
