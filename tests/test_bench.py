@@ -255,6 +255,9 @@ def test_whole_path_of_a_combiner_counts_every_oidn_run_it_needs() -> None:
     res["entries"].append(e("oidn:high-pf", 6.0))
     text = markdown(res)
     assert "(3.4x OIDN high; with oidn:high + oidn:high-pf)" in text
+    # its API row (given the candidates like the bare call) needs the same runs: it said 1.32x
+    res["entries"].append(e("combine:ens api", 1.3))
+    assert "combine:ens api 10,300 (3.43x OIDN high; with oidn:high + oidn:high-pf)" in markdown(res)
 
 
 def test_interleaved_times_settles_after_a_switch_of_library() -> None:

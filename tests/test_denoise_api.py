@@ -174,3 +174,28 @@ def test_the_fast_finite_check_counts_exactly() -> None:
     bad[0, 1, 1], bad[2, 3, 0], bad[1, 0, 2] = np.nan, np.inf, -np.inf
     out, n = _sanitize(bad)
     assert n == 3 and np.isfinite(out).all() and out[0, 1, 1] == 0
+
+
+def test_repeated_calls_reuse_the_prepared_model_until_the_weights_change(tmp_path) -> None:
+    """Catches two bugs: every call loading and folding the weights again (~15 ms, 10% of wskp's
+    1080p time, issue 18), and a cache that serves stale weights after the file is rewritten."""
+    from mcdenoise.infer.choose import choose_model
+    from mcdenoise.infer.sources import from_arrays
+
+    b = _buffers()
+    inputs = from_arrays(np.asarray(b["color"], np.float32), albedo=np.asarray(b["albedo"], np.float32),
+                         normal=np.asarray(b["normal"], np.float32), depth=np.asarray(b["depth"], np.float32))
+    path = tmp_path / "w.safetensors"
+    for seed in (0, 1):
+        torch.manual_seed(seed)
+        save_file(build_model("wskp", "small").state_dict(), str(path), metadata={"model": "wskp", "preset": "small"})
+        first, _ = choose_model(inputs, str(path), precision="float32")
+        again, info = choose_model(inputs, str(path), precision="float32")
+        assert again is first and info["why"] == "as asked"
+        if seed == 0:
+            before = first
+    assert first is not before
+    w0 = next(before.parameters())
+    assert not torch.equal(w0, next(first.parameters()))
+    other, _ = choose_model(inputs, str(path), precision="bfloat16")
+    assert other is not first  # a precision is part of what was prepared

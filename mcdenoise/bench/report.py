@@ -144,7 +144,8 @@ def markdown(res: dict[str, Any], command: str = "") -> str:
             paths = []
             for e in comb:
                 # the OIDN runs the combiner's candidates need: high, and prefiltered high for `ens`
-                need = ["high"] + (["high-pf"] if e["method"] in PF_COMBINERS else [])
+                # (its API row too: the API is given the candidates like the bare call)
+                need = ["high"] + (["high-pf"] if e["method"].removesuffix(" api") in PF_COMBINERS else [])
                 pre = [_oidn(res, w, h, q) for q in need]
                 if None in pre:
                     paths.append(f"{e['method']} not measured (needs oidn:{' and oidn:'.join(need)})")

@@ -11,6 +11,11 @@ OIDN is not installed do the old rules apply: test relMSE, then :data:`FALLBACK_
 
 from __future__ import annotations
 
+import functools
+import json
+import threading
+from collections import OrderedDict
+from pathlib import Path
 from typing import Any
 
 import torch
@@ -112,6 +117,72 @@ def _oidn_info(why: str, inputs: Inputs) -> dict[str, Any]:
             "label": "oidn", "why": why, "channels": ["radiance", *guides], "precision": "float32"}
 
 
+#: Prepared models kept for repeated calls (``mcdenoise.denoise`` in a loop), newest last; loading,
+#: folding and wrapping in bfloat16 cost ~15 ms a call, 10% of a fast model's time at 1080p.
+_PREPARED: OrderedDict[tuple[Any, ...], tuple[Denoiser, dict[str, Any]]] = OrderedDict()
+_PREPARED_MAX = 4
+_PREPARED_LOCK = threading.Lock()
+
+
+def _weights_identity(spec: str, preset: str | None) -> tuple[Any, ...] | None:
+    """What names the weights ``spec`` loads (files' paths, inodes, sizes and change times), or None
+    when it is not a single file (a run folder, whose checkpoint moves while it trains: never cached)."""
+    from mcdenoise.models.weights import WeightsError, shipped_weights
+
+    p = Path(spec)
+    if p.is_file():
+        files = [p]
+    elif spec in MODELS:
+        try:
+            w = shipped_weights(spec, preset or "small").weights
+        except WeightsError:
+            return None  # let load_denoiser say what is shipped
+        files = [w, w.with_suffix(".json")]  # the card holds the model config
+    ident: list[Any] = []
+    for f in files:
+        try:
+            st = f.stat()
+        except OSError:
+            return None  # let load_denoiser say what is missing
+        ident.append((str(f.resolve()), st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns))
+    return tuple(ident)
+
+
+def _load_prepared(spec: str, preset: str | None, device: torch.device | str,
+                   precision: str) -> tuple[Denoiser, dict[str, Any]]:
+    """``load_denoiser`` then ``prepare_inference``, reusing the result while the weights files are
+    unchanged. The model is shared between calls: callers must not change it (inference does not)."""
+    from mcdenoise.models.inference import prepare_inference
+    from mcdenoise.models.weights import load_denoiser
+
+    ident = _weights_identity(spec, preset)
+    key = None if ident is None else (ident, spec, preset, str(torch.device(device)), precision)
+    if key is not None:
+        with _PREPARED_LOCK:
+            hit = _PREPARED.get(key)
+            if hit is not None:
+                _PREPARED.move_to_end(key)
+                return hit[0], dict(hit[1])
+    model, info = load_denoiser(spec, preset=preset, device=device)
+    model = prepare_inference(model, fast=True, precision=precision)
+    if key is not None:
+        with _PREPARED_LOCK:
+            _PREPARED[key] = (model, info)
+            while len(_PREPARED) > _PREPARED_MAX:
+                _PREPARED.popitem(last=False)
+    return model, dict(info)
+
+
+@functools.lru_cache(maxsize=64)
+def _arch_inputs(name: str, preset: str, config_json: str) -> tuple[tuple[str, ...], str]:
+    """The channels and input kind of a shipped architecture (building one takes ~2 ms; the auto
+    pick asks for each shipped model on every call)."""
+    from mcdenoise.models.weights import model_from_config
+
+    arch = model_from_config(name, preset, json.loads(config_json))
+    return tuple(arch.required_channels()), arch.input_kind
+
+
 def _fallback_rank(name: str) -> tuple[int, str]:
     return (FALLBACK_ORDER.index(name) if name in FALLBACK_ORDER else len(FALLBACK_ORDER), name)
 
@@ -126,18 +197,23 @@ def choose_model(inputs: Inputs, spec: str | None = None, *, device: torch.devic
     ``precision``: of the convolution trunks (:func:`mcdenoise.models.inference.prepare_inference`);
     ``info["precision"]`` says which one was used.
     """
-    from mcdenoise.models.weights import load_denoiser, model_from_config, shipped
+    from mcdenoise.models.weights import shipped
 
     from mcdenoise.eval.oidn import oidn_available
     from mcdenoise.infer.oidn_method import OIDN_NAME, OIDNMethod
+    from mcdenoise.models.inference import resolve_precision
 
     _load_all()
+    try:
+        resolved = resolve_precision(precision, device)
+    except ValueError as e:
+        raise InputError(f"--precision: {e}") from None
     if spec == OIDN_NAME:
         if not oidn_available():
             raise InputError("--model oidn: Open Image Denoise is not installed (pip install 'pyoidn==2.5.1.0')")
         return OIDNMethod(), _oidn_info("as asked", inputs)
     if spec is not None:
-        model, info = load_denoiser(spec, preset=preset, device=device)
+        model, info = _load_prepared(spec, preset, device, resolved)
         missing = missing_channels(model.required_channels(), model.input_kind, inputs)
         if missing:
             raise _refuse(inputs.label, info["name"], missing)
@@ -148,8 +224,8 @@ def choose_model(inputs: Inputs, spec: str | None = None, *, device: torch.devic
         for sw in shipped():
             if sw.name not in MODELS or (preset is not None and sw.preset != preset):
                 continue
-            arch = model_from_config(sw.name, sw.preset, sw.card.get("model_config"))
-            missing = missing_channels(arch.required_channels(), arch.input_kind, inputs)
+            needs, kind = _arch_inputs(sw.name, sw.preset, json.dumps(sw.card.get("model_config"), sort_keys=True))
+            missing = missing_channels(list(needs), kind, inputs)
             if missing:
                 refused.append((sw.name, missing))
                 continue
@@ -177,22 +253,17 @@ def choose_model(inputs: Inputs, spec: str | None = None, *, device: torch.devic
                     f"(relMSE at {RANK_SPP} spp in the model cards)", inputs)
             beat.sort(key=lambda b: (b[0], b[1]))
             _, _, best, (mine, oidn) = beat[0]
-            model, info = load_denoiser(best.name, preset=best.preset, device=device)
+            model, info = _load_prepared(best.name, best.preset, device, resolved)
             info["why"] = (f"lowest third-party validation relMSE at {RANK_SPP} spp ({mine:.4g}, OIDN high {oidn:.4g}) "
                            "among the models whose inputs are present")
         else:
             candidates.sort(key=lambda c: (c[0][0], c[0][1], c[1]))
             _, _, best, score = candidates[0]
-            model, info = load_denoiser(best.name, preset=best.preset, device=device)
+            model, info = _load_prepared(best.name, best.preset, device, resolved)
             info["why"] = (f"OIDN not installed; lowest test relMSE ({score:.4g}) among shipped models whose inputs are present"
                            if score is not None else
                            "OIDN not installed; first in the fixed order among shipped models whose inputs are present")
     info["channels"] = [c for c in model.required_channels() if c != "scene_features"]
-    from mcdenoise.models.inference import prepare_inference, resolve_precision
-
-    try:
-        info["precision"] = resolve_precision(precision, device)
-    except ValueError as e:
-        raise InputError(f"--precision: {e}") from None
-    # Weights are loaded: fold WSKP's RepVGG branches (parity-tested in tests/test_fast_paths.py).
-    return prepare_inference(model, fast=True, precision=info["precision"]), info
+    # Weights are loaded and WSKP's RepVGG branches folded (parity-tested in tests/test_fast_paths.py).
+    info["precision"] = resolved
+    return model, info
