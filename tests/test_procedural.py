@@ -303,11 +303,9 @@ def test_view_cameras_stay_in_the_scene(kind: str) -> None:
 @pytest.mark.render
 @pytest.mark.parametrize("seed,kind,sky", [
     (5, "indoor", None),
-    # Known, open (issue 18/19): the first envmap data update after a render changes the kernel
-    # (two scalars become kernel inputs; bisected: not the folded x*1.0, not pending evaluations,
-    # not a second update before the preview), so the exposure fix compiles once more per outdoor
-    # envmap scene (~2.6 s). A warm disk cache used to hide it. strict: a fix makes this fail.
-    pytest.param(3, "outdoor", "envmap", marks=pytest.mark.xfail(strict=True, reason="envmap rescale recompiles once")),
+    # Fixed (issue 18): this one compiled once more after the exposure fix, because its thin-lens
+    # camera's aperture and focus distance were literals until the first update after a render.
+    (3, "outdoor", "envmap"),
 ])
 def test_new_view_and_exposure_reuse_the_compiled_kernel(seed: int, kind: str, sky: str | None) -> None:
     """Catches: the camera pose or an emitter rescale (area/point/spot lights indoors, the

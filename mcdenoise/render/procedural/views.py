@@ -57,6 +57,15 @@ def set_camera(scene: Any, camera_to_world: np.ndarray) -> None:
     t = mi.Transform4f(m.tolist())
     dr.make_opaque(t)
     params["to_world"] = t
+    # A thin-lens camera's aperture and focus distance load as literals; the first update after a
+    # render evaluates them into kernel inputs, which compiled the scene once more (issue 18,
+    # measured: the outdoor envmap scenes' exposure fix). Same values, opaque from the start.
+    for key in params.keys():
+        v = params[key]
+        if type(v) is mi.Float and dr.width(v) == 1:
+            v = mi.Float(v)
+            dr.make_opaque(v)
+            params[key] = v
     params.update()
 
 
@@ -95,8 +104,9 @@ def scale_loaded_emitters(scene: Any, scene_dict: dict, k: float = 1.0) -> list[
         elif t in ("point", "spot"):
             colour(f"{sid}.intensity.value", node["intensity"]["value"])
         elif t == "envmap":
-            # Also with k = 1: the envmap's first update changes the kernel once (its state
-            # after any update is the same, measured), so it must happen before the preview.
+            # Also with k = 1, before the preview, so that every update leaves the same state.
+            # (The recompile once blamed on this update was the thin-lens camera's literals,
+            # made opaque in set_camera since; data * k is kept: datasets stay bit-identical.)
             params[f"{sid}.data"] = params[f"{sid}.data"] * float(k)
             done.append(f"{sid}.data")
         elif t == "sunsky":
