@@ -1,0 +1,100 @@
+"""Probe (issue 20, speed): OIDN 2.5.1 with ``cleanAux`` on guides prefiltered by something cheaper
+than OIDN's own guide filters (each costs about one OIDN ``high`` run at 1080p), at each colour
+quality. relMSE relative to plain OIDN high (noisy guides), means over images, per folder group.
+
+    python scripts/guide_prefilter_probe.py data/rich_val data/scene_inputs --spp 8
+"""
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from mcdenoise.data.image_folder import ImageFolder
+from mcdenoise.data.stats import pixel_stats
+from mcdenoise.eval.metrics import psnr, relmse
+from mcdenoise.eval.oidn import oidn_denoise, oidn_prefilter
+
+
+def bilateral(al: np.ndarray, nr: np.ndarray, radius: int, sigma_s: float, sigma_r: float, iters: int = 1):
+    """Joint bilateral of albedo and normal, weights from both (6 channels), (3,H,W) each."""
+    g = torch.from_numpy(np.concatenate([al, nr]))[None].float()
+    k = 2 * radius + 1
+    for _ in range(iters):
+        pad = F.pad(g, (radius,) * 4, mode="replicate")
+        patches = F.unfold(pad, k).view(1, 6, k * k, *g.shape[-2:])
+        d2 = ((patches - g[:, :, None]) ** 2).sum(1, keepdim=True)
+        yy, xx = torch.meshgrid(torch.arange(-radius, radius + 1), torch.arange(-radius, radius + 1), indexing="ij")
+        sp = torch.exp(-(yy ** 2 + xx ** 2).float() / (2 * sigma_s ** 2)).view(1, 1, k * k, 1, 1)
+        w = sp * torch.exp(-d2 / (2 * sigma_r ** 2))
+        g = (w * patches).sum(2) / w.sum(2)
+    a, n = g[0, :3].numpy(), g[0, 3:].numpy()
+    norm = np.linalg.norm(n, axis=0, keepdims=True)
+    n = np.where(norm > 1e-6, n / np.maximum(norm, 1e-6), 0.0)
+    return a.astype(np.float32), n.astype(np.float32)
+
+
+def folders(roots):
+    for r in roots:
+        for m in sorted(Path(r).rglob("meta.json")):
+            if (m.parent / "reference.exr").is_file():
+                yield Path(r).name, m.parent
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("roots", nargs="+")
+    ap.add_argument("--spp", nargs="+", type=int, default=[8])
+    ap.add_argument("--gf", nargs="*", default=[], help="guide-filter weights to compare (OIDN high on its guides, passed as noisy)")
+    ap.add_argument("--short", action="store_true", help="only OIDN high, high on OIDN-prefiltered guides (as noisy) and --gf")
+    a = ap.parse_args()
+    from mcdenoise.eval.guide_filter import _load, prefilter_guides, weights_digest
+    nets = {Path(w).parent.name or w: _load(str(w), weights_digest(Path(w))) for w in a.gf}
+    rows: dict = {}
+    for group, p in folders(a.roots):
+        f = ImageFolder(p)
+        ref = f.read_reference(["radiance"])["radiance"]
+        for k in a.spp:
+            smp = f.samples.read(["radiance", "albedo", "normal"], samples=list(range(k)))
+            m = {n: pixel_stats(v)[0] for n, v in smp.items()}
+            c, al, nr = m["radiance"], m["albedo"], m["normal"]
+            guides = {"oidn": (oidn_prefilter(al, "albedo"), oidn_prefilter(nr, "normal")),
+                      "noisy": (al, nr),
+                      "box3": bilateral(al, nr, 1, 1e3, 1e3),
+                      "bil2_s.1": bilateral(al, nr, 2, 1.5, 0.1),
+                      "bil2_s.3": bilateral(al, nr, 2, 1.5, 0.3),
+                      "bil2_s.3x2": bilateral(al, nr, 2, 1.5, 0.3, 2)}
+            cand = {"high": oidn_denoise(c, al, nr, quality="high")}
+            for name, net in nets.items():
+                cand[f"high~gf:{name}"] = oidn_denoise(c, *prefilter_guides(al, nr, net), quality="high")
+            if a.short:
+                pa, pn = oidn_prefilter(al, "albedo"), oidn_prefilter(nr, "normal")
+                cand["high~oidn"] = oidn_denoise(c, pa, pn, quality="high")
+                d = rows.setdefault((group, k), {})
+                for n, x in cand.items():
+                    d.setdefault(n, []).append((float(relmse(x, ref)), float(psnr(x, ref))))
+                continue
+            for gname, (ga, gn) in guides.items():
+                for q in ("high", "balanced", "fast"):
+                    if gname != "oidn" and q == "high" and gname not in ("bil2_s.3", "box3"):
+                        continue
+                    cand[f"{q}|{gname}"] = oidn_denoise(c, ga, gn, quality=q, clean_aux=True)
+                if gname in ("bil2_s.1", "bil2_s.3", "oidn"):  # guides cleaner, still passed as noisy
+                    cand[f"high~{gname}"] = oidn_denoise(c, ga, gn, quality="high")
+            d = rows.setdefault((group, k), {})
+            for n, x in cand.items():
+                d.setdefault(n, []).append((float(relmse(x, ref)), float(psnr(x, ref))))
+    for (group, k), d in sorted(rows.items()):
+        print(f"\n{group} spp {k} ({len(d['high'])} images)")
+        base = np.array(d["high"])
+        for n, v in d.items():
+            v = np.array(v)
+            print(f"  {n:22s} relMSE {v[:,0].mean():.4f} ({v[:,0].mean()/base[:,0].mean():.3f}x)  PSNR {v[:,1].mean():.2f}  "
+                  f"beats high {int((v[:,0] < base[:,0]).sum())}/{len(v)}  worst {np.max(v[:,0]/base[:,0]):.3f}")
+
+
+if __name__ == "__main__":
+    main()
