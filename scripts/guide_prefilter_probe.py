@@ -51,8 +51,8 @@ def main() -> None:
     ap.add_argument("--gf", nargs="*", default=[], help="guide-filter weights to compare (OIDN high on its guides, passed as noisy)")
     ap.add_argument("--short", action="store_true", help="only OIDN high, high on OIDN-prefiltered guides (as noisy) and --gf")
     a = ap.parse_args()
-    from mcdenoise.eval.guide_filter import _load, prefilter_guides, weights_digest
-    nets = {Path(w).parent.name or w: _load(str(w), weights_digest(Path(w))) for w in a.gf}
+    from guide_filter_net import load, prefilter_guides
+    nets = {Path(w).parent.name or w: load(w) for w in a.gf}
     rows: dict = {}
     for group, p in folders(a.roots):
         f = ImageFolder(p)

@@ -1,4 +1,4 @@
-"""Train the guide prefilter (``mcdenoise/eval/guide_filter.py``) by distilling OIDN 2.5.1's guide filters.
+"""Train the guide prefilter (``scripts/guide_filter_net.py``, an experiment, not shipped) by distilling OIDN 2.5.1's guide filters.
 
 Inputs: the mean albedo and normal of the first ``k`` samples of each image (``k`` drawn from
 ``--spp``), targets: what OIDN's albedo and normal filters make of those very guides. No
@@ -8,7 +8,8 @@ cached in ``OUT/pairs.npz`` (deterministic from the arguments).
 
     python scripts/train_guide_filter.py --data data/rich256 data/rich_ref data/rich_ref2 \
         --val data/rich_val --out runs/guide_filter --steps 3000
-    # ship: cp runs/guide_filter/guide_filter.safetensors mcdenoise/models/shipped/
+    python scripts/guide_prefilter_probe.py data/scene_inputs data/rich_val --spp 4 8 16 --short \
+        --gf runs/guide_filter/guide_filter.safetensors
 """
 from __future__ import annotations
 
@@ -24,7 +25,7 @@ import torch
 
 from mcdenoise.data.image_folder import ImageFolder
 from mcdenoise.data.stats import pixel_stats
-from mcdenoise.eval.guide_filter import GuideFilter
+from guide_filter_net import GuideFilter
 from mcdenoise.eval.oidn import oidn_prefilter
 
 

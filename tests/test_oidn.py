@@ -250,7 +250,7 @@ def test_prefilter_refuses_what_it_cannot_do() -> None:
     _, noisy = _noisy(0)
     with pytest.raises(OIDNError, match="albedo or normal"):
         oidn_prefilter(noisy, "color")
-    with pytest.raises(OIDNError, match="prefilter 'best'"):
+    with pytest.raises(OIDNError, match="prefilter quality"):
         oidn_denoise(noisy, *_guides(noisy.shape), prefilter="best")
 
 
@@ -260,6 +260,5 @@ def test_quality_names_with_prefilter_parse_in_one_place() -> None:
     from mcdenoise.eval.oidn import parse_quality
 
     assert parse_quality("high") == ("high", None) and parse_quality("fast-pf") == ("fast", "fast")
-    assert parse_quality("high-gf") == ("high", "gf")
     with pytest.raises(OIDNError, match="optionally with -pf"):
         parse_quality("best-pf")

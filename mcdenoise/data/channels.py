@@ -132,8 +132,6 @@ def _builtin() -> None:
                            "normal); computed from the other channels, cached beside a dataset", per_sample=False))
     c(Channel("oidn_pf", RGB, "Open Image Denoise 2.5.1 'high' output with the albedo and normal guides prefiltered "
                               "by OIDN 'fast' and passed as clean; derived like 'oidn'", per_sample=False))
-    c(Channel("oidn_gf", RGB, "Open Image Denoise 2.5.1 'high' output with the albedo and normal guides prefiltered "
-                              "by mcdenoise's guide filter and passed as noisy; derived like 'oidn'", per_sample=False))
 
 
 _builtin()

@@ -1,8 +1,6 @@
 """The derived channels ``oidn`` and ``oidn_pf``: Open Image Denoise 2.5.1's output for an image's
-first ``k`` samples -- with the guides as they are (``oidn``), with the guides prefiltered by
-OIDN ``fast`` first and passed as clean (``oidn_pf``, OIDN's documented best mode for noisy guides),
-and with the guides prefiltered by our distilled guide filter and passed as noisy (``oidn_gf``,
-:mod:`mcdenoise.eval.guide_filter`; its cache names the weights' digest).
+first ``k`` samples -- with the guides as they are (``oidn``), and with the guides prefiltered by
+OIDN ``fast`` first and passed as clean (``oidn_pf``, OIDN's documented best mode for noisy guides).
 
 Computed from the same inputs a pixel model gets (the mean colour, albedo and normal of samples
 ``0..k-1``; all stored samples = ``noisy.exr``) and cached once per image, ``k`` and OIDN version
@@ -22,7 +20,7 @@ __all__ = ["OIDN_CHANNEL", "OIDN_CHANNELS", "oidn_for", "oidn_guides", "split_oi
 
 OIDN_CHANNEL = "oidn"
 #: Derived channel -> quality OIDN prefilters the guides with (None: guides as they are).
-OIDN_CHANNELS: dict[str, str | None] = {"oidn": None, "oidn_pf": "fast", "oidn_gf": "gf"}
+OIDN_CHANNELS: dict[str, str | None] = {"oidn": None, "oidn_pf": "fast"}
 #: How far up from an image folder a dataset's manifest.json is looked for.
 _MAX_UP = 3
 
@@ -61,14 +59,7 @@ def oidn_for(folder: object, k: int | None = None, *, quality: str = "high", cha
         raise ValueError(f"not a derived OIDN channel: {channel!r}")
     prefilter = OIDN_CHANNELS[channel]
     # the plain channel keeps its pre-existing cache name
-    if prefilter is None:
-        stem = f"{quality}_spp{k}"
-    elif prefilter == "gf":  # our guide filter: its weights are part of the function
-        from mcdenoise.eval.guide_filter import weights_digest
-
-        stem = f"{quality}_gf-{weights_digest()}_spp{k}"
-    else:
-        stem = f"{quality}_pf-{prefilter}_spp{k}"
+    stem = f"{quality}_spp{k}" if prefilter is None else f"{quality}_pf-{prefilter}_spp{k}"
     root = _dataset_root(Path(folder.path))  # type: ignore[attr-defined]
     cache = None
     if root is not None:

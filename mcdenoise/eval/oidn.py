@@ -34,31 +34,23 @@ import numpy as np
 
 from mcdenoise.errors import McDenoiseError
 
-__all__ = ["GUIDE_FILTER", "OIDNError", "QUALITIES", "oidn_available", "oidn_denoise", "oidn_prefilter", "parse_quality", "device_threads", "version"]
+__all__ = ["OIDNError", "QUALITIES", "oidn_available", "oidn_denoise", "oidn_prefilter", "parse_quality", "device_threads", "version"]
 
 #: OIDN's quality presets, best and slowest first; ``high`` is OIDN's default.
 QUALITIES: tuple[str, ...] = ("high", "balanced", "fast")
 
 #: Suffix of a quality name (``high-pf``) asking for guides prefiltered by OIDN ``fast`` first.
 PREFILTERED_SUFFIX = "-pf"
-#: ``prefilter`` value (and ``-gf`` suffix) for guides prefiltered by our distilled guide filter
-#: (:mod:`mcdenoise.eval.guide_filter`) and still passed to OIDN as noisy.
-GUIDE_FILTER = "gf"
-_SUFFIXES = {PREFILTERED_SUFFIX: "fast", f"-{GUIDE_FILTER}": GUIDE_FILTER}
 
 
 def parse_quality(spec: str) -> tuple[str, str | None]:
-    """``"high"`` -> ``("high", None)``; ``"high-pf"`` -> ``("high", "fast")``; ``"high-gf"`` ->
-    ``("high", "gf")``: the quality and the ``prefilter`` of :func:`oidn_denoise`, as every command
-    spells them."""
-    for suffix, prefilter in _SUFFIXES.items():
-        if spec.endswith(suffix) and spec.removesuffix(suffix) in QUALITIES:
-            return spec.removesuffix(suffix), prefilter
-    if spec not in QUALITIES:
+    """``"high"`` -> ``("high", None)``; ``"high-pf"`` -> ``("high", "fast")``: the quality and the
+    ``prefilter`` of :func:`oidn_denoise`, as every command spells them."""
+    quality = spec.removesuffix(PREFILTERED_SUFFIX)
+    if quality not in QUALITIES:
         raise OIDNError(f"OIDN quality {spec!r}: expected one of {', '.join(QUALITIES)}, each optionally with "
-                        f"{PREFILTERED_SUFFIX} (guides prefiltered by OIDN fast first) or -{GUIDE_FILTER} (guides "
-                        "prefiltered by mcdenoise's guide filter)")
-    return spec, None
+                        f"{PREFILTERED_SUFFIX} (guides prefiltered by OIDN fast first)")
+    return quality, ("fast" if spec.endswith(PREFILTERED_SUFFIX) else None)
 
 
 _INSTALL_HINT = "install it with: pip install 'pyoidn==2.5.1.0' (or mcdenoise's 'oidn' extra)"
@@ -252,12 +244,7 @@ def oidn_denoise(
         prefilter: denoise the guides with OIDN at this quality first (:func:`oidn_prefilter`)
             and pass them as clean (``clean_aux``): OIDN's documented highest-quality mode for
             noisy guides (depth of field, motion blur, glossy paths). Costs one extra OIDN run
-            per guide (measured: about one ``high`` colour run each at 1080p, and with
-            ``clean_aux`` OIDN runs a larger colour network). :data:`GUIDE_FILTER` instead
-            filters both guides with :mod:`mcdenoise.eval.guide_filter` (a small network distilled
-            from OIDN's guide filters) and passes them as noisy guides: OIDN's own colour network
-            for noisy guides, at a fraction of the cost. It needs both guides; with albedo
-            alone the guide passes through as it is.
+            per guide (``fast``: about 0.55x a ``high`` colour run each).
 
     Returns:
         (3, H, W) float32 denoised radiance, a new contiguous array.
@@ -273,19 +260,9 @@ def oidn_denoise(
     guides = {name: _hwc(g, name, shape) for name, g in given.items() if g is not None}
     if threads is not None and (isinstance(threads, bool) or not isinstance(threads, int) or threads < 1):
         raise OIDNError(f"OIDN threads must be a positive integer, got {threads!r}")
-    if prefilter == GUIDE_FILTER:
-        if len(guides) == 2:
-            from mcdenoise.eval.guide_filter import prefilter_guides
-
-            try:
-                fa, fn = prefilter_guides(np.moveaxis(guides["albedo"], -1, 0), np.moveaxis(guides["normal"], -1, 0))
-            except FileNotFoundError as e:
-                raise OIDNError(str(e)) from None
-            guides = {"albedo": np.ascontiguousarray(np.moveaxis(fa, 0, -1)),
-                      "normal": np.ascontiguousarray(np.moveaxis(fn, 0, -1))}
-    elif prefilter is not None:
+    if prefilter is not None:
         if prefilter not in QUALITIES:
-            raise OIDNError(f"OIDN prefilter {prefilter!r}: expected one of {', '.join(QUALITIES)} or {GUIDE_FILTER!r}")
+            raise OIDNError(f"OIDN prefilter quality {prefilter!r}: expected one of {', '.join(QUALITIES)}")
         if guides:
             guides = {name: _run_guide(pyoidn, name, g, prefilter, threads) for name, g in guides.items()}
             clean_aux = True

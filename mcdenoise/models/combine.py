@@ -69,11 +69,6 @@ class CombineConfig:
     50 from OIDN with prefiltered guides, 0.007 in the noisy mean). Measured with the shipped
     ``ens`` weights (``mcdenoise eval --data data/rich_val --split val``): 7.1x OIDN high's relMSE
     at 16 spp before the rule existed, 1.34x with it; the third-party figures did not move."""
-    base: str = "oidn"
-    """The OIDN candidate every feature is measured against: ``oidn`` (OIDN on the guides as they
-    are) or ``oidn_gf`` (OIDN on guides our distilled guide filter cleaned first,
-    :mod:`mcdenoise.eval.guide_filter`): one OIDN run either way, so the whole path stays near
-    OIDN's own time (issue 20's 1.5x)."""
     prefiltered: bool = False
     """Add a third candidate, ``oidn_pf``: OIDN with its guides prefiltered by OIDN first and
     passed as clean (OIDN's best mode for noisy guides). Measured before training (OIDN 2.5.1,
@@ -85,8 +80,6 @@ class CombineConfig:
 #: Candidate channels, in the order of the predicted weights (``prefiltered``: PF_CANDIDATES).
 CANDIDATES = ("oidn", "radiance")
 PF_CANDIDATES = ("oidn", "oidn_pf", "radiance")
-#: OIDN candidates a combiner can be built around (``CombineConfig.base``).
-BASES = ("oidn", "oidn_gf")
 #: Feature channels: log OIDN, log noisy, albedo, normal, log relative deviation of the noisy
 #: mean from OIDN; with the variance: log relative variance and the deviation in standard deviations;
 #: with the prefiltered candidate: its log colour and its log relative deviation from OIDN.
@@ -100,12 +93,10 @@ def _lum(x: torch.Tensor) -> torch.Tensor:
     return 0.2126 * x[:, 0:1] + 0.7152 * x[:, 1:2] + 0.0722 * x[:, 2:3]
 
 
-def combine_features(batch: dict[str, torch.Tensor], use_variance: bool = False, prefiltered: bool = False,
-                     base: str = "oidn") -> torch.Tensor:
+def combine_features(batch: dict[str, torch.Tensor], use_variance: bool = False, prefiltered: bool = False) -> torch.Tensor:
     """``(B, N_FEATURES [+ N_VARIANCE_FEATURES] [+ N_PF_FEATURES], H, W)`` inputs of the weight
-    network, exposure-normalised where it matters (log colour; ratios, not differences). ``base``:
-    the OIDN candidate channel (``oidn`` or ``oidn_gf``)."""
-    oidn = batch[base].clamp_min(0)
+    network, exposure-normalised where it matters (log colour; ratios, not differences)."""
+    oidn = batch["oidn"].clamp_min(0)
     noisy = batch["radiance"].clamp_min(0)
     lo, ln = _lum(oidn), _lum(noisy)
     # How far the noisy mean is from OIDN, relative to OIDN: the network judges from the neighbourhood
@@ -150,11 +141,7 @@ class Combine(Denoiser):
         k2 = config.kernel * config.kernel
         w = config.width
         n_in = N_FEATURES + (N_VARIANCE_FEATURES if config.use_variance else 0) + (N_PF_FEATURES if config.prefiltered else 0)
-        if config.base not in BASES:
-            raise ValueError(f"base must be one of {BASES}, got {config.base!r}")
-        if config.prefiltered and config.base != "oidn":
-            raise ValueError("prefiltered needs base 'oidn' (its features compare oidn_pf with oidn)")
-        self.names = PF_CANDIDATES if config.prefiltered else (config.base, "radiance")
+        self.names = PF_CANDIDATES if config.prefiltered else CANDIDATES
         self.net = UNet(n_in, len(self.names) * k2, [(w, w)] * config.levels, (w, w), [(w, w)] * config.levels)
         if not 0 <= config.start_logit < LOGIT_BOUND:
             raise ValueError(f"start_logit must be in [0, {LOGIT_BOUND}), got {config.start_logit}")
@@ -168,7 +155,7 @@ class Combine(Denoiser):
         return list(self.names) + (["radiance_variance"] if self.config.use_variance else []) + ["albedo", "normal"]
 
     def features(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
-        return combine_features(batch, self.config.use_variance, self.config.prefiltered, self.config.base)
+        return combine_features(batch, self.config.use_variance, self.config.prefiltered)
 
     def weights(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
         """(B, len(self.names) * k * k, H, W) softmax weights."""
@@ -177,7 +164,7 @@ class Combine(Denoiser):
 
     def candidates(self, batch: dict[str, torch.Tensor]) -> list[torch.Tensor]:
         """The candidate images, in ``self.names`` order (the noisy one clamped, see the config)."""
-        oidn, noisy = batch[self.config.base], batch["radiance"]
+        oidn, noisy = batch["oidn"], batch["radiance"]
         if self.config.noisy_clamp > 0:
             bright = F.max_pool2d(F.pad(oidn.clamp_min(0), (1, 1, 1, 1), mode="replicate"), 3, stride=1)
             noisy = torch.minimum(noisy, self.config.noisy_clamp * bright + EPS)
@@ -207,7 +194,6 @@ _PAPER = ("Back et al. 2020 (deep combiner), Zheng et al. 2021 (ensemble denoisi
         "small_k3": lambda: CombineConfig(kernel=3),
         "paper": lambda: CombineConfig(width=32, levels=3, kernel=5, use_variance=True),
         "ens": lambda: CombineConfig(prefiltered=True),
-        "gf": lambda: CombineConfig(base="oidn_gf"),
     },
     paper=_PAPER,
     description="U-Net -> per-pixel softmax kernels over OIDN 2.5.1's output and the noisy mean",

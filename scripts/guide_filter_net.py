@@ -1,24 +1,18 @@
-"""A cheap prefilter for OIDN's guides: a small network distilled from OIDN 2.5.1's own guide filters.
+"""Experiment (issue 20, speed; not shipped): a small U-Net distilled from OIDN 2.5.1's albedo/normal filters.
 
-OIDN's documented best mode for noisy albedo and normal is to denoise each guide with OIDN first.
-Each of those two runs costs about one OIDN ``high`` colour run at 1080p (measured, see
-docs/models/combine.md), which puts the whole path at 3x OIDN before any combiner. The same guides
-passed to OIDN ``high`` as *noisy* guides (no ``cleanAux``) already give most of the gain and keep
-OIDN's robustness (``scripts/guide_prefilter_probe.py``: 0.76x plain OIDN's relMSE on the
-third-party scenes at 8 spp, never more than 1% worse on one of them). This module makes that
-prefilter cheap: a U-Net of 8 and 16 channels (4.5k multiply-adds a pixel) maps the noisy guides to
-what OIDN's guide filters make of them.
+OIDN's documented best mode for noisy guides denoises albedo and normal with OIDN first; each of
+those runs costs about one OIDN ``high`` colour run at 1080p. Passing the prefiltered guides to
+OIDN ``high`` as *noisy* guides keeps most of the gain at one colour run
+(``scripts/guide_prefilter_probe.py``). This network was to make the prefilter cheap. Measured
+(docs/models/combine.md): it loses 0.2-0.4 dB PSNR against plain OIDN on the third-party scenes,
+because its albedo smooths real textures that the procedural training images do not have; the
+gain of OIDN's own prefilter is in the albedo (the normal prefilter changes nothing there).
 
-Shapes: ``albedo``, ``normal`` are ``(B, 3, H, W)``; the network reads both and writes both.
-Weights: ``mcdenoise/models/shipped/guide_filter.safetensors`` (trained by
-``scripts/train_guide_filter.py``; recipe in docs/TRAINING.md). Like OIDN, it is a fixed function
-of its inputs once shipped: the derived channel ``oidn_gf`` names the weights' digest in its cache.
+Trained by ``scripts/train_guide_filter.py``; shapes ``(B, 3, H, W)`` for albedo and normal.
 """
 
 from __future__ import annotations
 
-import functools
-import hashlib
 from pathlib import Path
 from typing import Any
 
@@ -27,10 +21,6 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-__all__ = ["GuideFilter", "WEIGHTS", "guide_filter", "prefilter_guides", "weights_digest"]
-
-#: The shipped weights (not a denoiser: ``shipped()`` lists ``name-preset`` files only).
-WEIGHTS = Path(__file__).resolve().parents[1] / "models" / "shipped" / "guide_filter.safetensors"
 
 
 class GuideFilter(nn.Module):
@@ -69,36 +59,21 @@ class GuideFilter(nn.Module):
         return y[:, :3], y[:, 3:]
 
 
-def weights_digest(path: Path = WEIGHTS) -> str:
-    """First 12 hex digits of the weights file's SHA-256 (names the ``oidn_gf`` cache). Read each
-    time (a few tens of KB): a file rewritten within the clock's granularity keeps its mtime."""
-    return hashlib.sha256(Path(path).read_bytes()).hexdigest()[:12]
-
-
-@functools.lru_cache(maxsize=2)
-def _load(path: str, digest: str) -> GuideFilter:
+def load(path: str | Path) -> GuideFilter:
+    """Weights written by scripts/train_guide_filter.py -> the network in eval mode."""
     from safetensors.torch import load_file
 
-    state = load_file(path)
-    c0, c1 = int(state["e0.weight"].shape[0]), int(state["e1.0.weight"].shape[0])
-    net = GuideFilter(c0, c1)
+    state = load_file(str(path))
+    net = GuideFilter(int(state["e0.weight"].shape[0]), int(state["e1.0.weight"].shape[0]))
     net.load_state_dict(state)
     return net.eval()
 
 
-def guide_filter(path: Path = WEIGHTS) -> GuideFilter:
-    """The shipped guide filter (loaded once per weights content)."""
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: no guide-filter weights (train them with scripts/train_guide_filter.py)")
-    return _load(str(path), weights_digest(path))
-
-
-def prefilter_guides(albedo: Any, normal: Any, net: GuideFilter | None = None) -> tuple[np.ndarray, np.ndarray]:
+def prefilter_guides(albedo: Any, normal: Any, net: GuideFilter) -> tuple[np.ndarray, np.ndarray]:
     """``(3, H, W)`` noisy albedo and normal -> filtered ``(3, H, W)`` float32 arrays.
 
     Albedo is clipped to >= 0, normals to [-1, 1] (what OIDN's guide filters give).
     """
-    net = guide_filter() if net is None else net
     a = torch.from_numpy(np.ascontiguousarray(albedo, np.float32))[None]
     n = torch.from_numpy(np.ascontiguousarray(normal, np.float32))[None]
     with torch.inference_mode():
