@@ -141,8 +141,14 @@ class _Runner:
             if m.api:
                 continue  # after its model (below)
             torch.manual_seed(cfg.seed)
-            model = build_model(m.name, m.preset).to(cfg.device)
-            self.models[m.label] = prepare_inference(model, fast=cfg.fast, precision=self.precision)
+            w = shipped_weights(m)
+            if w is not None:  # the bare call runs the weights (and card config) its API row loads
+                from mcdenoise.models.weights import load_denoiser
+
+                model = load_denoiser(w)[0]
+            else:
+                model = build_model(m.name, m.preset)
+            self.models[m.label] = prepare_inference(model.to(cfg.device), fast=cfg.fast, precision=self.precision)
             self.kind[m.label] = model.input_kind
         for m in self.methods:
             if m.api:

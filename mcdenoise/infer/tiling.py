@@ -120,13 +120,18 @@ def run_tiled(
     tiles: Iterable[Tile] = plan.tiles()
     if progress is not None:
         tiles = progress(tiles)
-    with torch.no_grad():
+    # inference mode, as the bench's bare call: no version counters (issue 18: API within 10%)
+    with torch.inference_mode():
         for tile in tiles:
             batch = read(tile)
             y = model(batch)
             del batch
             sy, sx = tile.core_in_window
             cy, cx, ch, cw = tile.core
+            if len(plan) == 1 and (ch, cw) == (plan.height, plan.width) and y.shape[-2:] == (ch, cw):
+                # one tile is the image: hand its output over instead of copying it into a new one
+                want = torch.float64 if y.dtype == torch.float64 else torch.float32
+                return np.ascontiguousarray(y[0].to(want).cpu().numpy())
             if out is None:
                 out = np.zeros((3, plan.height, plan.width), np.float64 if y.dtype == torch.float64 else np.float32)
             out[:, cy : cy + ch, cx : cx + cw] = y[0, :, sy, sx].to(torch.float64 if out.dtype == np.float64 else torch.float32).cpu().numpy()
