@@ -1,0 +1,153 @@
+"""Evidence for the next campaign (issue 19): third-party validation relMSE of every shipped model
+against the training CPU-hours and training megapixels that made it, one point per version of its
+model card in git history (every version that carries a third-party validation block).
+
+Cumulative figures follow each card's chain of fine-tunes (``training.init``): CPU-seconds as the
+cards record them (loader workers included), *dataset* megapixels (images x views x pixels of
+every dataset in the chain) and *seen* megapixels (steps x batch x crop^2 of every training run).
+
+    python scripts/training_evidence.py --out docs/img/training_evidence.png --spp 8
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import shlex
+import subprocess
+from pathlib import Path
+from typing import Any
+
+ROOT = Path(__file__).resolve().parents[1]
+SHIPPED = "mcdenoise/models/shipped"
+#: `mcdenoise train` defaults the commands may leave out.
+DEFAULTS = {"--batch": 8, "--crop": 48, "--steps": 2000}
+
+
+def _flag(cmd: str, name: str, default: float | None = None) -> float | None:
+    args = shlex.split(cmd)
+    for i, a in enumerate(args[:-1]):
+        if a == name:
+            return float(args[i + 1])
+    return default
+
+
+def dataset_mp(cmd: str | None) -> float:
+    """Megapixels of the images a `mcdenoise dataset` command renders (all splits)."""
+    if not cmd:
+        return 0.0
+    size = _flag(cmd, "--size", 64.0)
+    w, h = _flag(cmd, "--width", size), _flag(cmd, "--height", size)
+    return (_flag(cmd, "--count", 0.0) or 0.0) * (_flag(cmd, "--views", 1.0) or 1.0) * w * h / 1e6
+
+
+def seen_mp(cmd: str | None, steps: float | None = None) -> float:
+    """Megapixels of crops a `mcdenoise train` command draws (steps x batch x crop^2)."""
+    if not cmd:
+        return 0.0
+    s = steps if steps is not None else _flag(cmd, "--steps", DEFAULTS["--steps"])
+    return s * _flag(cmd, "--batch", DEFAULTS["--batch"]) * _flag(cmd, "--crop", DEFAULTS["--crop"]) ** 2 / 1e6
+
+
+def stages(card: dict[str, Any]) -> list[dict[str, Any]]:
+    """The training runs behind a card, newest first: dataset command, train command, CPU-s, steps."""
+    out = []
+    ds = card.get("dataset")
+    tr = card.get("training") or {}
+    out.append({"dataset": ds.get("command") if isinstance(ds, dict) else ds, "train": tr.get("command"),
+                "cpu_s": tr.get("cpu_s"), "steps": tr.get("steps")})
+    init = tr.get("init")
+    while isinstance(init, dict):
+        if "training" in init:  # a whole earlier card's dataset + training block
+            out += stages({"dataset": init.get("dataset"), "training": init["training"]})
+            break
+        out.append({"dataset": init.get("dataset"), "train": init.get("train"), "cpu_s": init.get("cpu_s"),
+                    "steps": None})
+        init = init.get("init")
+    return out
+
+
+def versions(path: str) -> list[tuple[str, dict[str, Any]]]:
+    """(commit, card) for every committed version of ``path``, oldest first, plus the working copy."""
+    revs = subprocess.run(["git", "log", "--format=%h", "--", path], cwd=ROOT, capture_output=True, text=True,
+                          check=True).stdout.split()
+    out = []
+    for h in reversed(revs):
+        try:
+            text = subprocess.run(["git", "show", f"{h}:{path}"], cwd=ROOT, capture_output=True, text=True,
+                                  check=True).stdout
+            out.append((h, json.loads(text)))
+        except (subprocess.CalledProcessError, ValueError):
+            continue
+    if (ROOT / path).is_file():
+        out.append(("work", json.loads((ROOT / path).read_text())))
+    return out
+
+
+def points(spp: int) -> list[dict[str, Any]]:
+    rows, seen_sha = [], set()
+    for card_path in sorted((ROOT / SHIPPED).glob("*.json")):
+        rel = f"{SHIPPED}/{card_path.name}"
+        for commit, card in versions(rel):
+            v = ((card.get("validation") or {}).get("spp") or {}).get(str(spp)) or {}
+            model, oidn = (v.get("model") or {}).get("relmse"), (v.get("oidn-high") or {}).get("relmse")
+            sha = card.get("weights_sha256")
+            if model is None or (sha, spp) in seen_sha:
+                continue  # no third-party block, or the same weights annotated again
+            seen_sha.add((sha, spp))
+            st = stages(card)
+            rows.append({
+                "model": card_path.stem, "commit": commit, "relmse": model, "oidn": oidn,
+                "cpu_h": sum(s["cpu_s"] or 0.0 for s in st) / 3600,
+                "dataset_mp": sum(dataset_mp(s["dataset"]) for s in st),
+                "seen_mp": sum(seen_mp(s["train"], s["steps"]) for s in st),
+                "stages": len(st),
+            })
+    return rows
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--spp", type=int, default=8)
+    ap.add_argument("--out", default="docs/img/training_evidence.png")
+    a = ap.parse_args()
+    rows = points(a.spp)
+    print(f"| model | card version | stages | training CPU-h | dataset MP | seen MP | relMSE at {a.spp} spp | x OIDN high |")
+    print("|---|---|---:|---:|---:|---:|---:|---:|")
+    for r in rows:
+        ratio = r["relmse"] / r["oidn"] if r["oidn"] else float("nan")
+        print(f"| {r['model']} | {r['commit']} | {r['stages']} | {r['cpu_h']:.2f} | {r['dataset_mp']:.1f} | "
+              f"{r['seen_mp']:.0f} | {r['relmse']:.4f} | {ratio:.2f} |")
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 3, figsize=(13, 4), sharey=True)
+    for ax, key, label in zip(axes, ("cpu_h", "dataset_mp", "seen_mp"),
+                              ("training CPU-hours (chain, cumulative)", "dataset megapixels (chain)",
+                               "megapixels of crops seen (chain)")):
+        for model in sorted({r["model"] for r in rows}):
+            rs = sorted((r for r in rows if r["model"] == model), key=lambda r: r[key])
+            ax.plot([r[key] for r in rs], [r["relmse"] for r in rs], "o-", label=model)
+        oidn = [r["oidn"] for r in rows if r["oidn"]]
+        if oidn:
+            ax.axhline(sum(oidn) / len(oidn), color="k", ls="--", lw=1, label="OIDN 2.5.1 high")
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xlabel(label)
+        ax.grid(True, which="both", alpha=0.3)
+    axes[0].set_ylabel(f"third-party relMSE, {a.spp} spp (mean of 9 scenes)")
+    axes[-1].legend(fontsize=8)
+    fig.suptitle("Each point is one shipped version of a model (its card in git history)")
+    fig.tight_layout()
+    out = ROOT / a.out
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_name(f".{out.name}.tmp.png")
+    fig.savefig(tmp, dpi=110)
+    tmp.replace(out)
+    print(f"\nwrote {a.out}")
+
+
+if __name__ == "__main__":
+    main()
