@@ -17,6 +17,7 @@ from mcdenoise.data.image_folder import ImageFolder
 from mcdenoise.data.stats import pixel_stats
 from mcdenoise.eval.metrics import psnr, relmse
 from mcdenoise.eval.oidn import oidn_denoise, oidn_prefilter
+from oidn_variants_probe import print_table
 
 
 def bilateral(al: np.ndarray, nr: np.ndarray, radius: int, sigma_s: float, sigma_r: float, iters: int = 1):
@@ -87,14 +88,7 @@ def main() -> None:
             d = rows.setdefault((group, k), {})
             for n, x in cand.items():
                 d.setdefault(n, []).append((float(relmse(x, ref)), float(psnr(x, ref))))
-    for (group, k), d in sorted(rows.items()):
-        print(f"\n{group} spp {k} ({len(d['high'])} images)")
-        base = np.array(d["high"])
-        for n, v in d.items():
-            v = np.array(v)
-            print(f"  {n:22s} relMSE {v[:,0].mean():.4f} ({v[:,0].mean()/base[:,0].mean():.3f}x)  PSNR {v[:,1].mean():.2f}  "
-                  f"beats high {int((v[:,0] < base[:,0]).sum())}/{len(v)}  worst {np.max(v[:,0]/base[:,0]):.3f}")
-
+    print_table(rows)
 
 if __name__ == "__main__":
     main()

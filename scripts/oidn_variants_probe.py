@@ -64,14 +64,19 @@ def main() -> None:
             for n, x in cand.items():
                 d = rows.setdefault((group, k), {})
                 d.setdefault(n, []).append((float(relmse(x, ref)), float(psnr(x, ref))))
+    print_table(rows)
+    sys.stdout.flush()
+
+
+def print_table(rows: dict[tuple[str, int], dict[str, list[tuple[float, float]]]]) -> None:
+    """One table per (folder group, spp): each candidate's mean relMSE and PSNR, against ``high``."""
     for (group, k), d in sorted(rows.items()):
         print(f"\n{group} spp {k} ({len(d['high'])} images)")
         base = np.array(d["high"])
         for n, v in d.items():
             v = np.array(v)
             wins = int((v[:, 0] < base[:, 0]).sum())
-            print(f"  {n:20s} relMSE {v[:,0].mean():.4f} ({v[:,0].mean()/base[:,0].mean():.3f}x high)  PSNR {v[:,1].mean():.2f}  beats high on {wins}/{len(v)}  worst ratio {np.max(v[:,0]/base[:,0]):.3f}")
-    sys.stdout.flush()
+            print(f"  {n:22s} relMSE {v[:,0].mean():.4f} ({v[:,0].mean()/base[:,0].mean():.3f}x high)  PSNR {v[:,1].mean():.2f}  beats high on {wins}/{len(v)}  worst ratio {np.max(v[:,0]/base[:,0]):.3f}")
 
 
 if __name__ == "__main__":
