@@ -190,3 +190,19 @@ def test_weights_file_and_config_errors_are_one_line(tmp_path: Path) -> None:
         with pytest.raises(W.WeightsError, match="config.json") as e:
             W.load_denoiser(run)
         assert "\n" not in str(e.value)
+
+
+def test_a_run_folder_is_chosen_and_never_cached(run: Path) -> None:
+    """Bug caught: the prepared-model cache of `choose_model` (repeated API calls) raised a
+    NameError for a run folder (`mcdenoise denoise --model runs/x`), and a run folder must be
+    loaded afresh each time (its checkpoint moves while it trains)."""
+    import numpy as np
+
+    from mcdenoise.infer.choose import choose_model
+    from mcdenoise.infer.sources import from_arrays
+
+    c = np.ones((3, 8, 8), np.float32)
+    inputs = from_arrays(c, albedo=c, normal=c, depth=c[:1])
+    first, info = choose_model(inputs, str(run), precision="float32")
+    again, _ = choose_model(inputs, str(run), precision="float32")
+    assert info["source"] == "run" and first.config.channels == 6 and again is not first

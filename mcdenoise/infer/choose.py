@@ -138,6 +138,8 @@ def _weights_identity(spec: str, preset: str | None) -> tuple[Any, ...] | None:
         except WeightsError:
             return None  # let load_denoiser say what is shipped
         files = [w, w.with_suffix(".json")]  # the card holds the model config
+    else:
+        return None
     ident: list[Any] = []
     for f in files:
         try:
