@@ -128,13 +128,13 @@ def run_tiled(
             del batch
             sy, sx = tile.core_in_window
             cy, cx, ch, cw = tile.core
+            want = torch.float64 if y.dtype == torch.float64 else torch.float32
             if len(plan) == 1 and (ch, cw) == (plan.height, plan.width) and y.shape[-2:] == (ch, cw):
                 # one tile is the image: hand its output over instead of copying it into a new one
-                want = torch.float64 if y.dtype == torch.float64 else torch.float32
                 return np.ascontiguousarray(y[0].to(want).cpu().numpy())
             if out is None:
-                out = np.zeros((3, plan.height, plan.width), np.float64 if y.dtype == torch.float64 else np.float32)
-            out[:, cy : cy + ch, cx : cx + cw] = y[0, :, sy, sx].to(torch.float64 if out.dtype == np.float64 else torch.float32).cpu().numpy()
+                out = np.zeros((3, plan.height, plan.width), np.float64 if want == torch.float64 else np.float32)
+            out[:, cy : cy + ch, cx : cx + cw] = y[0, :, sy, sx].to(want).cpu().numpy()
             del y
     assert out is not None  # a plan always has at least one tile
     return out
