@@ -47,12 +47,17 @@ def folders(roots):
 
 def main() -> None:
     ap = argparse.ArgumentParser()
-    ap.add_argument("roots", nargs="+")
+    ap.add_argument("roots", nargs="*")
     ap.add_argument("--spp", nargs="+", type=int, default=[8])
     ap.add_argument("--gf", nargs="*", default=[], help="guide-filter weights to compare (OIDN high on its guides, passed as noisy)")
-    ap.add_argument("--short", action="store_true", help="only OIDN high, high on OIDN-prefiltered guides (as noisy) and --gf")
+    ap.add_argument("--per-image", action="store_true", help="also print every image's PSNR per candidate")
+    ap.add_argument("--cost", metavar="WEIGHTS", help="only time the guide filter WEIGHTS at 1920x1080 against OIDN high")
+    ap.add_argument("--short", action="store_true", help="only OIDN high, high on OIDN-prefiltered guides (as noisy, both or one) and --gf")
     a = ap.parse_args()
     from guide_filter_net import load, prefilter_guides
+    if a.cost:
+        cost(load(a.cost))
+        return
     nets = {Path(w).parent.name or w: load(w) for w in a.gf}
     rows: dict = {}
     for group, p in folders(a.roots):
@@ -62,33 +67,60 @@ def main() -> None:
             smp = f.samples.read(["radiance", "albedo", "normal"], samples=list(range(k)))
             m = {n: pixel_stats(v)[0] for n, v in smp.items()}
             c, al, nr = m["radiance"], m["albedo"], m["normal"]
-            guides = {"oidn": (oidn_prefilter(al, "albedo"), oidn_prefilter(nr, "normal")),
-                      "noisy": (al, nr),
-                      "box3": bilateral(al, nr, 1, 1e3, 1e3),
-                      "bil2_s.1": bilateral(al, nr, 2, 1.5, 0.1),
-                      "bil2_s.3": bilateral(al, nr, 2, 1.5, 0.3),
-                      "bil2_s.3x2": bilateral(al, nr, 2, 1.5, 0.3, 2)}
-            cand = {"high": oidn_denoise(c, al, nr, quality="high")}
+            pa, pn = oidn_prefilter(al, "albedo"), oidn_prefilter(nr, "normal")
+            cand = {"high": oidn_denoise(c, al, nr, quality="high"),
+                    "high~oidn": oidn_denoise(c, pa, pn, quality="high"),
+                    # one guide prefiltered at a time: which of the two carries the gain
+                    "high~oidn-albedo-only": oidn_denoise(c, pa, nr, quality="high"),
+                    "high~oidn-normal-only": oidn_denoise(c, al, pn, quality="high")}
             for name, net in nets.items():
                 cand[f"high~gf:{name}"] = oidn_denoise(c, *prefilter_guides(al, nr, net), quality="high")
-            if a.short:
-                pa, pn = oidn_prefilter(al, "albedo"), oidn_prefilter(nr, "normal")
-                cand["high~oidn"] = oidn_denoise(c, pa, pn, quality="high")
-                d = rows.setdefault((group, k), {})
-                for n, x in cand.items():
-                    d.setdefault(n, []).append((float(relmse(x, ref)), float(psnr(x, ref))))
-                continue
-            for gname, (ga, gn) in guides.items():
-                for q in ("high", "balanced", "fast"):
-                    if gname != "oidn" and q == "high" and gname not in ("bil2_s.3", "box3"):
-                        continue
-                    cand[f"{q}|{gname}"] = oidn_denoise(c, ga, gn, quality=q, clean_aux=True)
-                if gname in ("bil2_s.1", "bil2_s.3", "oidn"):  # guides cleaner, still passed as noisy
-                    cand[f"high~{gname}"] = oidn_denoise(c, ga, gn, quality="high")
+            if not a.short:
+                guides = {"oidn": (pa, pn),
+                          "noisy": (al, nr),
+                          "box3": bilateral(al, nr, 1, 1e3, 1e3),
+                          "bil2_s.1": bilateral(al, nr, 2, 1.5, 0.1),
+                          "bil2_s.3": bilateral(al, nr, 2, 1.5, 0.3),
+                          "bil2_s.3x2": bilateral(al, nr, 2, 1.5, 0.3, 2)}
+                for gname, (ga, gn) in guides.items():
+                    for q in ("high", "balanced", "fast"):
+                        if gname != "oidn" and q == "high" and gname not in ("bil2_s.3", "box3"):
+                            continue
+                        cand[f"{q}|{gname}"] = oidn_denoise(c, ga, gn, quality=q, clean_aux=True)
+                    if gname in ("bil2_s.1", "bil2_s.3"):  # guides cleaner, still passed as noisy
+                        cand[f"high~{gname}"] = oidn_denoise(c, ga, gn, quality="high")
             d = rows.setdefault((group, k), {})
             for n, x in cand.items():
                 d.setdefault(n, []).append((float(relmse(x, ref)), float(psnr(x, ref))))
+            if a.per_image:
+                print(f"{p.name} {k} spp PSNR: " + ", ".join(f"{n} {v[-1][1]:.2f}" for n, v in d.items()))
     print_table(rows)
+
+
+def cost(net) -> None:
+    """Median seconds at 1920x1080 (2 torch threads): the guide filter in float32 and in bfloat16
+    (channels-last, autocast), and OIDN high with both guides, in one run."""
+    import sys
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    from _timing import median_time
+
+    torch.set_num_threads(2)
+    g = torch.Generator().manual_seed(0)
+    a, n = torch.rand(1, 3, 1080, 1920, generator=g), torch.rand(1, 3, 1080, 1920, generator=g) * 2 - 1
+    cl = net.to(memory_format=torch.channels_last)
+    ac, nc = a.contiguous(memory_format=torch.channels_last), n.contiguous(memory_format=torch.channels_last)
+
+    def bf16() -> None:
+        with torch.autocast("cpu", dtype=torch.bfloat16):
+            cl(ac, nc)
+
+    with torch.inference_mode():
+        t32 = median_time(lambda: cl(ac, nc), 3, warmup=1)
+        t16 = median_time(bf16, 3, warmup=1)
+    c = a[0].numpy() * 4
+    toidn = median_time(lambda: oidn_denoise(c, a[0].numpy(), n[0].numpy()), 3, warmup=1)
+    print(f"1920x1080: guide filter float32 {t32:.3f} s, bfloat16 {t16:.3f} s; OIDN high {toidn:.3f} s "
+          f"(ratios {t32 / toidn:.2f}, {t16 / toidn:.2f})")
 
 if __name__ == "__main__":
     main()
