@@ -214,3 +214,43 @@ def test_data_config_rejects_bad_settings() -> None:
     with pytest.raises(ValueError, match="spp_range"):
         DataConfig(spp_range=(3, 2))
     assert DataConfig(spp_range=[2, 4]).spp_range == (2, 4)  # JSON lists become tuples
+
+
+def test_several_datasets_train_on_their_union(ds: Path, tmp_path: Path) -> None:
+    """Bugs caught: ``--data a,b`` reading only the first dataset (or treating "a,b" as one missing
+    folder), validation ignoring the second dataset's val split, a run of two datasets resuming
+    against a third (the manifest hash must name both), and a single dataset's hash changing so that
+    older runs no longer resume."""
+    import dataclasses
+    import json
+
+    from mcdenoise.train.config import ConfigError, TrainConfig, manifest_hash
+    from mcdenoise.train.data import dataset_dirs
+    from mcdenoise.train.loop import train
+
+    other = tmp_path / "other"  # other image names, so its manifest differs from ds's
+    entries = []
+    for i, split in enumerate(["train", "train", "val"]):
+        _image(other, f"t{i}", 10 + i)
+        entries.append({"path": f"t{i}", "scene": f"t{i}", "split": split})
+    write_manifest(other, entries)
+    spec = f"{ds},{other}"
+    assert dataset_dirs(spec) == [ds, other]
+    with pytest.raises(ValueError, match="empty"):
+        dataset_dirs(f"{ds},,{other}")
+    model = build_model("kpcn", "small")
+    cfg = DataConfig(crop=8, batch=2, workers=0, spp_range=(2, 4))
+    assert len(batch_source(spec, model, cfg).sampler.images) == 4  # 2 train images in each
+    assert len(validation_batches(spec, model, cfg)) == 2
+    assert manifest_hash(str(ds)) != manifest_hash(spec) != manifest_hash(f"{other},{ds}")
+    import hashlib
+    assert manifest_hash(str(ds)) == hashlib.sha256((ds / "manifest.json").read_bytes()).hexdigest()
+
+    tc = TrainConfig(model="wskp", data=spec, steps=2, batch=2, crop=8, workers=0, progress=False, val_every=0)
+    train(tc, tmp_path / "run")
+    saved = json.loads((tmp_path / "run" / "config.json").read_text())
+    assert saved["manifest_sha256"] == manifest_hash(spec)
+    with pytest.raises(ConfigError, match="manifest"):  # same run, other data: refused
+        train(dataclasses.replace(tc, data=str(ds), steps=3), tmp_path / "run", resume=True)
+    with pytest.raises(ConfigError, match="no manifest.json"):
+        train(dataclasses.replace(tc, data=f"{ds},{tmp_path / 'missing'}"), tmp_path / "run2")

@@ -30,7 +30,7 @@ def add_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--model", help="registered model name (see `mcdenoise models`)")
     p.add_argument("--preset", help="model preset (default small)")
     p.add_argument("--init", help="start from these weights (fine-tune): a shipped model name, run folder or .safetensors")
-    p.add_argument("--data", help="dataset folder from `mcdenoise dataset`")
+    p.add_argument("--data", help="dataset folder from `mcdenoise dataset`; several separated by commas train on their union")
     p.add_argument("--val-data", help="validate on this dataset's val split (e.g. one with references; default --data)")
     p.add_argument("--out", type=Path, required=True, help="run folder (created; see --resume and --force)")
     p.add_argument("--steps", type=int, help="optimizer steps (default 2000); with --resume, more steps extend a finished run")

@@ -31,6 +31,13 @@ from mcdenoise.models.weights import SHIPPED_DIR, WeightsError, load_denoiser
 __all__ = ["dataset_command", "train_command", "model_card", "card_markdown", "ship"]
 
 
+def _datasets_command(spec: str) -> str | None:
+    """The commands that render every procedural dataset of a ``--data`` value again (several are
+    separated by commas), joined by `` && ``; None when none of them was made by ``mcdenoise dataset``."""
+    cmds = [dataset_command(d) for d in (p.strip() for p in str(spec).split(",")) if (Path(d) / "dataset.json").is_file()]
+    return " && ".join(cmds) or None
+
+
 def dataset_command(data_dir: str | Path) -> str:
     """The ``mcdenoise dataset`` command that renders ``data_dir`` again, from its dataset.json.
 
@@ -184,7 +191,7 @@ def model_card(run_dir: Path, model: Any, info: dict[str, Any], results: dict[st
         "inputs": list(model.required_channels()),
         "input_kind": model.input_kind,
         "parameters": sum(p.numel() for p in model.parameters()),
-        "dataset": {"command": dataset_command(t["data"]) if (Path(t["data"]) / "dataset.json").is_file() else None,
+        "dataset": {"command": _datasets_command(t["data"]),
                     "path": t["data"], "manifest_sha256": doc.get("manifest_sha256")},
         "training": {
             "command": train_command(doc, f"runs/{info['name']}"),

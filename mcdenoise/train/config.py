@@ -93,7 +93,8 @@ class TrainConfig:
     """Start from these weights (fine-tuning): a shipped model name, a run folder or a
     ``.safetensors`` file of the same model; its model configuration replaces the preset's."""
     data: str = ""
-    """Dataset folder written by ``mcdenoise dataset`` (needs a ``train`` split; ``val`` for validation)."""
+    """Dataset folder written by ``mcdenoise dataset`` (needs a ``train`` split; ``val`` for validation);
+    several separated by commas train on the union of their images."""
     val_data: str | None = None
     """Validate on this dataset's ``val`` split instead (e.g. a small one with references: noisy
     targets make validation relMSE biased); None = ``data``'s."""
@@ -214,11 +215,15 @@ RUNTIME_FIELDS = frozenset({"data", "val_data", "device", "workers", "threads", 
 
 
 def manifest_hash(data_dir: str | Path) -> str:
+    # ``data_dir`` may name several datasets separated by commas (``--data a,b``).
     """SHA-256 of the dataset's ``manifest.json`` bytes: names the exact image list trained on and,
     for procedural datasets that record their Mitsuba variant, the render settings (spp, size,
     seed, depth, world, generator version, variant: the manifest's ``settings`` block). Manifests
     of older datasets have no such block and keep their bytes, so runs resume against them."""
-    return hashlib.sha256((Path(data_dir) / "manifest.json").read_bytes()).hexdigest()
+    dirs = [p.strip() for p in str(data_dir).split(",")]
+    hashes = [hashlib.sha256((Path(d) / "manifest.json").read_bytes()).hexdigest() for d in dirs]
+    # One dataset keeps its plain hash (older runs resume); several hash their hashes, in order.
+    return hashes[0] if len(hashes) == 1 else hashlib.sha256("\n".join(hashes).encode()).hexdigest()
 
 
 def config_document(cfg: TrainConfig, *, model_config: dict[str, Any], manifest_sha256: str, world_size: int) -> dict[str, Any]:

@@ -27,7 +27,24 @@ from mcdenoise.data.tensors import input_arrays
 from mcdenoise.data.sampler import SAMPLINGS, TARGETS, Crop, CropSampler
 from mcdenoise.train.augment import NUM_OPS, augment_arrays, camera_frame
 
-__all__ = ["DataConfig", "training_batches", "validation_batches", "target_channels", "batch_source"]
+__all__ = ["DataConfig", "training_batches", "validation_batches", "target_channels", "batch_source", "dataset_dirs",
+           "split_images"]
+
+
+def dataset_dirs(spec: str | os.PathLike | list) -> list[Path]:
+    """The dataset folders of a ``--data`` value: one folder, or several separated by commas
+    (``data/a,data/b``), or a list of folders. Training draws images uniformly from their union."""
+    if isinstance(spec, (list, tuple)):
+        return [Path(p) for p in spec]
+    parts = [p.strip() for p in str(spec).split(",")]
+    if not all(parts):
+        raise ValueError(f"--data {spec!r}: an empty dataset name between commas")
+    return [Path(p) for p in parts]
+
+
+def split_images(spec: str | os.PathLike | list, split: str) -> list[ImageFolder]:
+    """The ``split`` images of every dataset in ``spec`` (see :func:`dataset_dirs`), in order."""
+    return [im for d in dataset_dirs(spec) for im in Dataset(d).images(split)]
 
 
 @dataclass
@@ -176,7 +193,7 @@ def _worker_init(_: int) -> None:
     torch.set_num_threads(1)
 
 
-def batch_source(data_dir: str | os.PathLike, model: torch.nn.Module, cfg: DataConfig, *, rank: int = 0,
+def batch_source(data_dir: str | os.PathLike | list, model: torch.nn.Module, cfg: DataConfig, *, rank: int = 0,
                  world_size: int = 1, split: str = "train") -> _BatchSource:
     """The map-style source behind :func:`training_batches`: ``source[t]`` is rank ``rank``'s part
     of global batch ``t`` (useful for tests and benchmarks without worker processes)."""
@@ -184,7 +201,7 @@ def batch_source(data_dir: str | os.PathLike, model: torch.nn.Module, cfg: DataC
         raise ValueError(f"rank {rank} outside 0..{world_size - 1}")
     if cfg.batch % world_size:
         raise ValueError(f"global batch {cfg.batch} is not divisible by world_size {world_size}")
-    images = Dataset(data_dir).images(split)
+    images = split_images(data_dir, split)
     if not images:
         raise ValueError(f"{data_dir}: no images in the {split!r} split")
     per = cfg.batch // world_size
@@ -216,7 +233,7 @@ def training_batches(
 
     derived = split_oidn(_input_channels(model))[1]
     if derived:
-        precompute_oidn(Dataset(data_dir).images("train"), cfg, derived)
+        precompute_oidn(split_images(data_dir, "train"), cfg, derived)
     dev = torch.device(device)
     loader = torch.utils.data.DataLoader(
         source,
@@ -270,7 +287,7 @@ def validation_batches(
     the image has one, else the mean of the samples the input did not use. Returns ``[]`` when
     the dataset has no ``val`` images.
     """
-    images = Dataset(data_dir).images("val")[: max_images if max_images is not None else None]
+    images = split_images(data_dir, "val")[: max_images if max_images is not None else None]
     names = _input_channels(model)
     targets = target_channels(model)
     out = []

@@ -35,7 +35,7 @@ from mcdenoise.models.weights import WeightsError, model_from_config
 from mcdenoise.train.checkpoint import CHECKPOINT_DIR, Checkpoint, intact_checkpoint, load_checkpoint, prune_checkpoints, \
     resume_checkpoint, save_checkpoint, state_dict_for_safetensors
 from mcdenoise.train.config import ConfigError, TrainConfig, check_resume_config, config_document, manifest_hash, read_config
-from mcdenoise.train.data import batch_source, training_batches, validation_batches
+from mcdenoise.train.data import batch_source, dataset_dirs, training_batches, validation_batches
 from mcdenoise.train.optim import StepOutcome, lr_at
 from mcdenoise.train.runlog import MetricsLog, plot_loss
 from mcdenoise.train.trainer import Trainer, data_config
@@ -205,9 +205,14 @@ def train(
 def _train(cfg: TrainConfig, out: Path, resume: bool, force: bool, on_step: Callable[[int, StepOutcome], None] | None,
            rank: int, world: int, device: torch.device, distributed: bool, t_start: float,
            locks: list[WriterLock]) -> TrainResult:
-    data_dir = Path(cfg.data)
-    if not (data_dir / "manifest.json").is_file():
-        raise ConfigError(f"{data_dir}: not a dataset folder (no manifest.json); make one with `mcdenoise dataset`")
+    try:
+        dirs = dataset_dirs(cfg.data)
+    except ValueError as e:
+        raise ConfigError(str(e)) from None
+    for d in dirs:
+        if not (d / "manifest.json").is_file():
+            raise ConfigError(f"{d}: not a dataset folder (no manifest.json); make one with `mcdenoise dataset`")
+    data_dir = dirs[0] if len(dirs) == 1 else dirs
     if cfg.batch % world:
         raise ConfigError(f"batch {cfg.batch} is not divisible by the {world} processes")
     torch.manual_seed(cfg.seed)
@@ -222,7 +227,7 @@ def _train(cfg: TrainConfig, out: Path, resume: bool, force: bool, on_step: Call
     except WeightsError as e:  # an override names a field the model's config lacks
         raise ConfigError(str(e)) from None
     cfg = cfg.resolved(model.input_kind)
-    doc = config_document(cfg, model_config=_model_config_json(model), manifest_sha256=manifest_hash(data_dir), world_size=world)
+    doc = config_document(cfg, model_config=_model_config_json(model), manifest_sha256=manifest_hash(cfg.data), world_size=world)
     # Check the data against the settings (crop larger than an image, spp out of range...) before
     # the run folder exists, so a typo does not leave a run that then needs --force.
     err: ConfigError | None = None
@@ -230,7 +235,7 @@ def _train(cfg: TrainConfig, out: Path, resume: bool, force: bool, on_step: Call
     try:
         batch_source(data_dir, model, data_config(cfg), rank=rank, world_size=world)
         if rank == 0:
-            val_batches = validation_batches(Path(cfg.val_data) if cfg.val_data else data_dir, model, data_config(cfg),
+            val_batches = validation_batches(cfg.val_data if cfg.val_data else data_dir, model, data_config(cfg),
                                              max_images=cfg.val_images)
     except ValueError as e:
         err = ConfigError(str(e))
