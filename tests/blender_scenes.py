@@ -164,7 +164,8 @@ BUILDERS = {"room": build_room, "dof": build_dof, "glass": build_glass}
 
 
 def render(scene_name: str, out: str, *, spp: int, size: int = 128, seed: int = 0, blender_denoise: bool = False,
-           half: bool = False, border: tuple[float, float, float, float] | None = None) -> None:
+           half: bool = False, border: tuple[float, float, float, float] | None = None,
+           light_passes: bool = False) -> None:
     """Build ``scene_name`` in a fresh Blender scene and write ``out`` (OpenEXR MultiLayer, float,
     or half with ``half``); ``border`` = (xmin, xmax, ymin, ymax), fractions of the frame with y
     up, renders and writes only that part (Blender's render region, cropped)."""
@@ -197,6 +198,12 @@ def render(scene_name: str, out: str, *, spp: int, size: int = 128, seed: int = 
     scene.render.resolution_x = scene.render.resolution_y = size
     scene.render.resolution_percentage = 100
     scene.render.film_transparent = False
+    if light_passes:  # docs/DENOISE.md: the passes kpcn's diffuse/specular split is made from
+        layer = scene.view_layers[0]
+        for kind in ("diffuse", "glossy", "transmission"):
+            for part in ("direct", "indirect", "color"):
+                setattr(layer, f"use_pass_{kind}_{part}", True)
+        layer.use_pass_emit = layer.use_pass_environment = True
     if half:
         scene.render.image_settings.color_depth = "16"
     if border is not None:
@@ -259,9 +266,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--half", action="store_true", help="half-float passes (Blender's 'Float (Half)')")
     p.add_argument("--border", type=float, nargs=4, metavar=("XMIN", "XMAX", "YMIN", "YMAX"),
                    help="render only this region (fractions of the frame, y up), cropped")
+    p.add_argument("--light-passes", action="store_true",
+                   help="also the Diffuse, Glossy and Transmission Direct/Indirect/Color, Emission and Environment passes")
     args = p.parse_args(argv)
     render(args.scene, args.out, spp=args.spp, size=args.size, seed=args.seed, blender_denoise=args.blender_denoise,
-           half=args.half, border=None if args.border is None else tuple(args.border))
+           half=args.half, border=None if args.border is None else tuple(args.border), light_passes=args.light_passes)
     return 0
 
 

@@ -322,3 +322,72 @@ def test_one_view_layer_is_read(tmp_path, wskp, capfd):
     # Without denoising passes anywhere, the first layer by name (as Blender's file lists them).
     plain = [n for n in names if ".Denoising " not in n]
     assert blender.view_layer(plain) == "Beauty." and blender.view_layers(names) == ["Beauty.", "Zeta."]
+
+
+def _with_light_passes(path, *, drop: str | None = None) -> dict[str, np.ndarray]:
+    """A Blender-like file whose colour is the sum of its light passes, as Cycles writes them."""
+    ch = blender_exr(path)
+    rng = np.random.default_rng(5)
+    dirr, ind, col = (rng.random((3, H, W)).astype(np.float32) for _ in range(3))
+    gloss = rng.random((3, H, W)).astype(np.float32) * 0.3
+    colour = (dirr + ind) * col + gloss
+    colour[:, LIGHT[0], LIGHT[1]] = 900.0  # the light: emission, no diffuse light pass there
+    dirr[:, LIGHT[0], LIGHT[1]] = ind[:, LIGHT[0], LIGHT[1]] = 0.0
+    for c, i in zip("RGB", range(3)):
+        ch[f"ViewLayer.Noisy Image.{c}"] = colour[i]
+        for name, arr in (("DiffDir", dirr), ("DiffInd", ind), ("DiffCol", col)):
+            if name != drop:
+                ch[f"ViewLayer.{name}.{c}"] = arr[i]
+    if drop is not None:
+        for c in "RGB":
+            ch.pop(f"ViewLayer.{drop}.{c}", None)
+    write_exr_file(path, ch, HEADER)
+    return ch
+
+
+def test_light_passes_split_the_colour_into_diffuse_and_specular(tmp_path):
+    """Catches Cycles' light passes used without their colour pass (they are stored divided by
+    it), a split whose parts do not add up to the colour, a negative specular part from rounding,
+    and a split made up when a pass is missing."""
+    src = tmp_path / "render.exr"
+    ch = _with_light_passes(src)
+    inputs = from_exr(src)
+    get = lambda n: np.stack([ch[f"ViewLayer.{n}.{c}"] for c in "RGB"]).astype(np.float32)  # noqa: E731
+    colour = get("Noisy Image")
+    diffuse, specular = inputs.pixels["diffuse"], inputs.pixels["specular"]
+    np.testing.assert_allclose(diffuse, (get("DiffDir") + get("DiffInd")) * get("DiffCol"), rtol=1e-6)
+    np.testing.assert_allclose(diffuse + specular, colour, rtol=1e-6)
+    assert (specular >= 0).all() and (diffuse >= 0).all()
+    assert specular[:, LIGHT[0], LIGHT[1]].min() == 900.0  # a light seen directly is specular
+    # Light passes larger than the colour (half-float rounding): clipped, the sum still holds.
+    split = blender.light_split({"L.DiffDir": get("DiffDir") * 2, "L.DiffInd": get("DiffInd"), "L.DiffCol": get("DiffCol")},
+                                colour)
+    assert split is not None and (split[1] >= 0).all() and np.allclose(split[0] + split[1], colour)
+    src2 = tmp_path / "no_col.exr"
+    _with_light_passes(src2, drop="DiffCol")
+    assert "diffuse" not in from_exr(src2).pixels
+
+
+def test_kpcn_pixel_runs_on_blender_passes_and_kpcn_refusal_says_how(tmp_path, capfd):
+    """Issue 21 item 2: catches kpcn refused on a Blender file that has the light passes (the
+    ``pixel`` preset needs no samples), and a refusal of the sample-variance kpcn that does not
+    say what would work."""
+    src = tmp_path / "render.exr"
+    _with_light_passes(src)
+    torch.manual_seed(0)
+    weights = tmp_path / "kpcn_pixel.safetensors"
+    import json
+    model = build_model("kpcn", "pixel")
+    save_file(model.state_dict(), str(weights), metadata={"model": "kpcn", "preset": "pixel",
+                                                          "model_config": json.dumps(model.config.__dict__)})
+    rc = main(["denoise", str(src), "-o", str(tmp_path / "o.exr"), "--model", str(weights)])
+    assert rc == 0, capfd.readouterr().err
+    _, got = read_exr_file(tmp_path / "o.exr")
+    out = np.stack([got[f"ViewLayer.Denoised.{c}"] for c in "RGB"])
+    assert np.isfinite(out).all() and out[:, LIGHT[0], LIGHT[1]].min() == 900.0  # the light passes through
+    small = tmp_path / "kpcn_small.safetensors"
+    save_file(build_model("kpcn", "small").state_dict(), str(small), metadata={"model": "kpcn", "preset": "small"})
+    capfd.readouterr()
+    rc = main(["denoise", str(src), "-o", str(tmp_path / "o2.exr"), "--model", str(small)])
+    err = [ln for ln in capfd.readouterr().err.splitlines() if ln.strip()]
+    assert rc != 0 and len(err) == 1 and "diffuse_variance" in err[0] and "kpcn-pixel" in err[0], err

@@ -351,3 +351,56 @@ def test_border_mask_equals_broadcast_mask_on_every_band(h: int, w: int, k: int)
             band = z[:, :, r0 : r0 + rows].clone()
             got = _mask_border_taps_(band, k, r0, h)
             assert torch.equal(got, want[:, :, r0 : r0 + rows]), (rows, r0)
+
+
+def test_window_variance_equals_a_loop_over_in_image_windows() -> None:
+    """Float64 against a per-pixel loop: catches padding counted as pixels at the borders (the
+    border variance would mix in zeros), a biased divisor, or an off-centre window."""
+    from mcdenoise.models.kpcn import window_variance
+
+    g = torch.Generator().manual_seed(0)
+    x = torch.rand(2, 3, 7, 9, generator=g, dtype=torch.float64) * 4
+    k, r = 5, 2
+    got = window_variance(x, k)
+    want = torch.empty_like(x)
+    for i in range(7):
+        for j in range(9):
+            win = x[..., max(0, i - r) : i + r + 1, max(0, j - r) : j + r + 1].flatten(-2)
+            want[..., i, j] = win.var(dim=-1, unbiased=False)
+    torch.testing.assert_close(got, want, rtol=1e-10, atol=1e-12)
+    assert (window_variance(torch.full((1, 1, 6, 6), 3.0, dtype=torch.float64), k) == 0).all()
+
+
+@pytest.mark.parametrize("name", ["kpcn", "kpcn_single"])
+def test_pixel_preset_reads_no_variance_and_every_input_matters(name: str) -> None:
+    """The ``pixel`` preset runs on inputs without samples: catches a variance channel still
+    required (Blender and pbrt files would be refused), a first-hit feature not read, a window
+    variance that leaves the crop equal to the crop of the whole image only in the interior too
+    narrowly (a seam source), and a constant image that does not stay constant."""
+    model = build_model(name, "pixel")
+    req = model.required_channels()
+    assert not [c for c in req if c.endswith("_variance")]
+    assert {"albedo", "normal", "depth"} <= set(req)
+    torch.manual_seed(1)
+    b = synthetic_batch(model, batch=1, height=20, width=24)
+    out = model(b)
+    (out - 0.5).abs().mean().backward()
+    for pname, p in model.named_parameters():
+        assert p.grad is not None and p.grad.abs().sum() > 0, pname
+    with torch.no_grad():
+        base = model.forward_branches(b)
+        for ch in req:
+            changed = dict(b)
+            changed[ch] = b[ch] * 1.5 + 0.05
+            new = model.forward_branches(changed)
+            assert max((new[k] - base[k]).abs().max().item() for k in base) > 1e-5, ch
+        ys, xs = slice(3, 16), slice(5, 19)
+        part = model.features({k: v[..., ys, xs] for k, v in b.items()})
+        whole = model.features(b)
+        r = model.config.variance_window // 2
+        for k in whole:  # away from the crop's edge by the window radius (and the gradient's pixel)
+            torch.testing.assert_close(part[k][..., r:-r - 1, r:-r - 1], whole[k][..., ys, xs][..., r:-r - 1, r:-r - 1],
+                                       rtol=1e-5, atol=1e-6)
+        flat = {k: torch.full_like(v, 0.7) for k, v in b.items()}
+        torch.testing.assert_close(model.eval()(flat), torch.full_like(out, 1.4 if "specular" in b else 0.7),
+                                   rtol=1e-4, atol=1e-5)

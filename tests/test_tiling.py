@@ -144,3 +144,22 @@ def test_receptive_field_does_not_depend_on_the_global_rng():
         torch.manual_seed(seed)
         found.add(measure_receptive_field(build_model("wskp_mr", "small")))
     assert found == {PINNED["wskp_mr"][0]}
+
+
+@pytest.mark.parametrize("name", ["kpcn", "kpcn_single"])
+def test_window_variance_preset_tiles_without_seams(name):
+    """The ``pixel`` preset's window variances widen the receptive field by the window radius:
+    catches a probe that misses it (the variances of tile-border pixels would differ)."""
+    torch.manual_seed(0)
+    model = build_model(name, "pixel").eval()
+    rf = receptive_field(model)
+    # 4 convolutions of 5x5 see 8 pixels; the features then reach 2 further (the window's radius,
+    # which covers the gradients' one pixel): 10, against the small preset's 8 + 1.
+    assert rf == 10 == PINNED[name][0] - 1 + model.config.variance_window // 2
+    model = model.double()
+    batch = synthetic_batch(model, height=H, width=W, dtype=torch.float64)
+    with torch.no_grad():
+        whole = model(batch)[0].numpy()
+    plan = plan_tiles(H, W, receptive=rf, align=alignment(model), core=12)
+    assert len(plan) >= 6
+    assert _rel(_run(model, batch, plan), whole) < 1e-4

@@ -102,7 +102,15 @@ def missing_channels(required: list[str], kind: str, inputs: Inputs) -> list[str
 
 
 def _refuse(label: str, name: str, missing: list[str]) -> InputError:
-    return InputError(f"model {name!r} needs channels that {label} lacks: {', '.join(missing)}")
+    """One line naming what is missing and, where a user can act on it, how to get it."""
+    hints = []
+    if any(c.endswith("_variance") for c in missing):
+        hints.append("variances come from per-sample data (an image folder of `mcdenoise render`); "
+                     "kpcn-pixel estimates them from the image instead")
+    if {"diffuse", "specular"} & set(missing):
+        hints.append("in Blender, turn on the Diffuse Direct, Indirect and Color passes for the diffuse/specular split")
+    tail = f" ({'; '.join(hints)})" if hints else ""
+    return InputError(f"model {name!r} needs channels that {label} lacks: {', '.join(missing)}{tail}")
 
 
 def _oidn_info(why: str, inputs: Inputs) -> dict[str, Any]:

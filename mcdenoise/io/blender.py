@@ -27,6 +27,11 @@ The channel *names* are mapped in :mod:`mcdenoise.io.names` (``<ViewLayer>.Noisy
   on unchanged (OIDN is given what Blender gives its own OIDN); every model treats a pixel with an
   albedo above 1 as an emitter, passed through unfiltered (:mod:`mcdenoise.models.emitters`).
 
+* **Diffuse and specular.** With the Diffuse Direct, Indirect and Color passes on, the colour is
+  split as KPCN needs it (:func:`light_split`). Cycles files them by the first bounce's BSDF, so
+  a diffuse wall seen through glass is Blender's transmission (our ``specular``), where our
+  renderer, which looks through delta lobes, calls it diffuse.
+
 A file with several view layers is read from one (:func:`view_layer`), colour and guides alike.
 
 Output (:func:`blender_output`): every input channel is written back bit for bit (same pixel type),
@@ -46,8 +51,8 @@ import numpy as np
 from mcdenoise.errors import McDenoiseError
 
 __all__ = [
-    "CYCLES_PASSES", "DENOISED_PASS", "BlenderNote", "is_cycles", "view_layers", "view_layer", "colour_layer",
-    "colour_fallback", "normals_to_world", "apply_conventions", "blender_output",
+    "CYCLES_PASSES", "DENOISED_PASS", "DIFFUSE_PASSES", "BlenderNote", "is_cycles", "view_layers", "view_layer",
+    "colour_layer", "colour_fallback", "light_split", "normals_to_world", "apply_conventions", "blender_output",
 ]
 
 #: Pass names of a Cycles multi-layer EXR with denoising data (Blender 4.x).
@@ -138,6 +143,35 @@ def normals_to_world(normal: np.ndarray, world_to_camera: Any) -> np.ndarray:
     return (n * scale).astype(np.float32)
 
 
+#: Cycles' light passes (EXR layer names) of the diffuse lobe: ``(DiffDir + DiffInd) * DiffCol``
+#: is the diffuse part of ``Combined``; the rest (glossy, transmission, emission, environment,
+#: volume) is the specular part, as KPCN splits it.
+DIFFUSE_PASSES = ("DiffDir", "DiffInd", "DiffCol")
+
+
+def light_split(layers: dict[str, np.ndarray], radiance: np.ndarray, prefix: str | None = None
+                ) -> tuple[np.ndarray, np.ndarray] | None:
+    """``(diffuse, specular)``, each (3, H, W) and >= 0 with ``diffuse + specular == radiance``,
+    from Cycles' Diffuse Direct, Indirect and Color passes (``prefix``: the view layer, None = any);
+    None when one of them is missing. Cycles stores the light passes divided by the colour pass
+    (checked: the sum of every lobe's ``(Dir + Ind) * Col`` plus Emit and Env equals ``Combined``
+    to 1e-7 relative on a glass scene), so ``(DiffDir + DiffInd) * DiffCol`` is the diffuse
+    radiance, and the remainder of the colour is specular. Where Blender's denoiser ran, the
+    colour is ``Noisy Image``, from the same samples."""
+    found: dict[str, np.ndarray] = {}
+    for name, arr in layers.items():
+        layer, _, pass_name = name.rpartition(".")
+        if pass_name in DIFFUSE_PASSES and arr.shape[0] >= 3 and (prefix is None or f"{layer}." == prefix):
+            found.setdefault(pass_name, arr[:3].astype(np.float32))
+    if len(found) < len(DIFFUSE_PASSES):
+        return None
+    diffuse = (found["DiffDir"] + found["DiffInd"]) * found["DiffCol"]
+    rad = radiance.astype(np.float32)
+    # Within [0, radiance]: rounding (and half-float passes) must not make specular negative.
+    diffuse = np.clip(diffuse, 0.0, np.maximum(rad, 0.0))
+    return diffuse, rad - diffuse
+
+
 def apply_conventions(layers: dict[str, np.ndarray], header: dict[str, Any], path: Path) -> dict[str, np.ndarray]:
     """Our reading of a Cycles file's layers (from :func:`mcdenoise.io.exr.read_exr`), see the
     module docstring: the ``Combined`` fallback and world-space normals when the header allows;
@@ -152,6 +186,10 @@ def apply_conventions(layers: dict[str, np.ndarray], header: dict[str, Any], pat
         rgb = colour_fallback(layers, path, prefix)
         if rgb is not None:
             layers["radiance"] = rgb
+    if "radiance" in layers and "diffuse" not in layers:
+        split = light_split(layers, layers["radiance"], prefix)
+        if split is not None:
+            layers["diffuse"], layers["specular"] = split
     w2c = header.get("worldToCamera")
     if "normal" in layers and w2c is not None:
         layers["normal"] = normals_to_world(layers["normal"], w2c)

@@ -12,7 +12,10 @@ stack of ``layers`` 5x5 convolutions with ReLU between them (Sec. 4.1, 5.2). Its
   radiance: ``log(1 + c)``;
 * x and y gradients of that colour and of normal, albedo and depth;
 * the colour variance carried through the same transform to first order (Eq. 5), reduced to one
-  channel by its luminance, and the normal, albedo and depth variances, one channel each;
+  channel by its luminance, and the normal, albedo and depth variances, one channel each; the
+  ``pixel`` preset (``variance = "window"``, first-hit features) measures each variance over a 5x5
+  window of the transformed feature instead, for inputs that carry no samples or variances
+  (Blender's passes, pbrt, OIDN-style files);
 * depth mapped by ``log(1 + depth / depth_scale)``, a fixed rule, so that a crop's features are
   the crop of the whole image's (the paper scales to [0, 1] per frame, which differs per tile).
 
@@ -31,6 +34,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
+import torch.nn.functional as F
 from torch import nn
 
 from mcdenoise.color import luminance
@@ -72,6 +76,13 @@ class KPCNConfig:
     depth_scale: float = 1.0
     """Depth feature ``log(1 + depth / depth_scale)``, in world units: depths well above it are
     seen relatively (a step from 10 to 11 looks like one from 100 to 110)."""
+    variance: str = "input"
+    """Where the variance features come from: ``"input"``, the ``*_variance`` channels (variance
+    of the mean from the samples, the paper); ``"window"``, the variance of each feature over a
+    ``variance_window`` square around the pixel, in the feature's own domain (inputs with no
+    samples and no variance: Blender, pbrt, OIDN-style files)."""
+    variance_window: int = 5
+    """Side of the ``"window"`` estimate (odd)."""
 
     def feature_channels(self) -> tuple[str, str, str]:
         """Names of the (albedo, normal, depth) buffers the features read."""
@@ -96,6 +107,17 @@ def _grad_xy(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     return gx, gy
 
 
+def window_variance(x: torch.Tensor, k: int) -> torch.Tensor:
+    """(B, C, H, W) -> (B, C, H, W): the variance of ``x`` over the k x k square around each pixel,
+    counting only pixels inside the image (so a tile with k // 2 pixels of overlap sees the
+    whole image's values). Noise and texture alike raise it: it stands in for the variance of the
+    mean where the input has no samples, and the network is trained with it (``variance="window"``)."""
+    xf = x.double()  # E[x^2] - E[x]^2 cancels catastrophically in float32 on bright, flat regions
+    mean = F.avg_pool2d(xf, k, stride=1, padding=k // 2, count_include_pad=False)
+    mean_sq = F.avg_pool2d(xf * xf, k, stride=1, padding=k // 2, count_include_pad=False)
+    return (mean_sq - mean * mean).clamp_min(0).to(x.dtype)
+
+
 def kpcn_features(batch: dict[str, torch.Tensor], config: KPCNConfig) -> dict[str, torch.Tensor]:
     """Network inputs per branch: name -> (B, FEATURES_PER_BRANCH, H, W); channels 0:3 are the colour.
 
@@ -112,17 +134,25 @@ def kpcn_features(batch: dict[str, torch.Tensor], config: KPCNConfig) -> dict[st
     # h'(d) = 1 / (s + d).
     s = config.depth_scale
     depth_f = torch.log1p(depth / s)
-    feat_var = torch.cat(
-        [
-            batch[variance_name(n_name)].mean(dim=1, keepdim=True),
-            _lum(batch[variance_name(a_name)]),
-            batch[variance_name(d_name)] / (s + depth) ** 2,
-        ],
-        dim=1,
-    )
+    window = config.variance == "window"
+    k = config.variance_window
+    if window:  # each variance measured in the domain the network sees
+        feat_var = torch.cat([window_variance(normal, k).mean(dim=1, keepdim=True),
+                              _lum(window_variance(albedo, k)), window_variance(depth_f, k)], dim=1)
+    else:
+        feat_var = torch.cat(
+            [
+                batch[variance_name(n_name)].mean(dim=1, keepdim=True),
+                _lum(batch[variance_name(a_name)]),
+                batch[variance_name(d_name)] / (s + depth) ** 2,
+            ],
+            dim=1,
+        )
     feat_grads = [_grad_xy(f) for f in (normal, albedo, depth_f)]
 
-    def branch(color: torch.Tensor, var: torch.Tensor) -> torch.Tensor:
+    def branch(color: torch.Tensor, var: torch.Tensor | None) -> torch.Tensor:
+        if var is None:
+            var = window_variance(color, k)
         gx, gy = _grad_xy(color)
         return torch.cat(
             [color, gx, gy, *[g for pair in feat_grads for g in pair], _lum(var), feat_var], dim=1
@@ -131,12 +161,15 @@ def kpcn_features(batch: dict[str, torch.Tensor], config: KPCNConfig) -> dict[st
     out: dict[str, torch.Tensor] = {}
     if config.split:
         diffuse, specular = batch["diffuse"], batch["specular"].clamp_min(0)
-        out["diffuse"] = branch(diffuse / (albedo + eps), batch[variance_name("diffuse")] / (albedo + eps) ** 2)
+        out["diffuse"] = branch(diffuse / (albedo + eps),
+                                None if window else batch[variance_name("diffuse")] / (albedo + eps) ** 2)
         # Eq. 5 with h(x) = log(1 + x): h'(x)^2 = 1 / (1 + x)^2.
-        out["specular"] = branch(torch.log1p(specular), batch[variance_name("specular")] / (1 + specular) ** 2)
+        out["specular"] = branch(torch.log1p(specular),
+                                 None if window else batch[variance_name("specular")] / (1 + specular) ** 2)
     else:
         radiance = batch["radiance"].clamp_min(0)
-        out["radiance"] = branch(torch.log1p(radiance), batch[variance_name("radiance")] / (1 + radiance) ** 2)
+        out["radiance"] = branch(torch.log1p(radiance),
+                                 None if window else batch[variance_name("radiance")] / (1 + radiance) ** 2)
     return out
 
 
@@ -237,6 +270,8 @@ class KPCN(Denoiser):
         if not config.depth_scale > 0:
             raise ValueError(f"KPCN: depth_scale must be > 0, got {config.depth_scale}")
         config.feature_channels()  # refuses an unknown feature_hit now, not at the first batch
+        if config.variance not in ("input", "window") or config.variance_window < 1 or config.variance_window % 2 == 0:
+            raise ValueError(f"KPCN: variance must be 'input' or 'window' with an odd variance_window, got {config}")
         out_ch = 3 if config.direct else config.kernel_size**2
         names = ("diffuse", "specular") if config.split else ("radiance",)
         self.branches = nn.ModuleDict({n: _Branch(config, FEATURES_PER_BRANCH, out_ch) for n in names})
@@ -249,6 +284,8 @@ class KPCN(Denoiser):
     def required_channels(self) -> list[str]:
         colors = ["diffuse", "specular"] if self.config.split else ["radiance"]
         names = colors + list(self.config.feature_channels())
+        if self.config.variance == "window":
+            return names
         return names + [variance_name(n) for n in names]
 
     def features(self, batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
@@ -321,10 +358,16 @@ def _small(**kw: object) -> KPCNConfig:
     return KPCNConfig(layers=4, channels=24, conv_size=5, kernel_size=9, **kw)  # type: ignore[arg-type]
 
 
+def _pixel(**kw: object) -> KPCNConfig:
+    """``small`` for inputs without samples: features at the first hit (``albedo``, ``normal``,
+    ``depth``, which Blender's denoising passes give) and window variances."""
+    return _small(feature_hit="first", variance="window", **kw)
+
+
 @register_model(
     "kpcn",
     config_cls=KPCNConfig,
-    presets={"paper": _paper, "small": _small},
+    presets={"paper": _paper, "small": _small, "pixel": _pixel},
     paper=_PAPER,
     description="diffuse/specular branches, 9 conv x 100 ch, 21x21 softmax gather kernels, Eq. 4 recombination",
 )
@@ -346,7 +389,8 @@ class DPCNModel(KPCN):
 @register_model(
     "kpcn_single",
     config_cls=KPCNConfig,
-    presets={"paper": lambda: _paper(split=False), "small": lambda: _small(split=False)},
+    presets={"paper": lambda: _paper(split=False), "small": lambda: _small(split=False),
+             "pixel": lambda: _pixel(split=False)},
     paper=_PAPER,
     description="one KPCN branch on log(1 + radiance) for inputs without a diffuse/specular split",
 )
