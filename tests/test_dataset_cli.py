@@ -261,3 +261,38 @@ def test_views_with_frames_and_older_datasets_are_refused(ds: Path, tmp_path: Pa
     assert _run("--count", "3", "--out", str(old), *TINY) == 1
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "generator" in err
+
+
+def test_generator_3_checks_views_cheaply_and_generator_2_still_renders(tmp_path: Path,
+                                                                          capsys: pytest.CaptureFixture[str]) -> None:
+    """Catches: the cheap view check applied to generator-2 datasets (their recipes would no
+    longer render the same images), a generator-2 dataset resumed by the new default without a
+    hint, and the check's spp and block not recorded."""
+    from mcdenoise.render.dataset_config import DatasetConfig
+    from mcdenoise.render.procedural_image import check_settings
+    from mcdenoise.render import RenderSettings
+
+    s = RenderSettings(spp=16, ref_spp=0, width=16, height=16)
+    assert check_settings(DatasetConfig(count=1, generator=2), s) == (s, 1)
+    got, block = check_settings(DatasetConfig(count=1, generator=3), s)
+    assert (got.spp, block) == (4, 2) and got.width == 16
+    low = RenderSettings(spp=4, ref_spp=0, width=16, height=16)
+    assert check_settings(DatasetConfig(count=1, generator=3), low) == (low, 1)
+
+    args = ["--count", "1", "--views", "2", "--spp", "8", "--ref-spp", "0", "--size", "16", "--objects", "10-12",
+            "--seed", "4", "--no-progress"]
+    new, old = tmp_path / "g3", tmp_path / "g2"
+    assert _run("--out", str(new), *args) == 0
+    assert _run("--out", str(old), "--generator", "2", *args) == 0
+    assert json.loads((new / "dataset.json").read_text())["generator"] == 3
+    assert json.loads((old / "dataset.json").read_text())["generator"] == 2
+    view = json.loads((new / "proc_000000" / "view_001" / "meta.json").read_text())["extra"]["view"]
+    assert (view["check_spp"], view["check_block"]) == (4, 1)  # 8 spp: 4-spp check, blocks of round(sqrt 2) = 1
+    assert "check_spp" not in json.loads((old / "proc_000000" / "view_001" / "meta.json").read_text())["extra"]["view"]
+    # view 0 is checked by the scene's own preview in both versions: the same image
+    np.testing.assert_array_equal(_radiance(new / "proc_000000" / "view_000"), _radiance(old / "proc_000000" / "view_000"))
+    capsys.readouterr()
+    assert _run("--out", str(old), *args) == 1  # resumed without --generator 2: refused, and told how
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "--generator 2" in err, err
+    assert _run("--out", str(old), "--generator", "2", *args) == 0

@@ -311,7 +311,10 @@ def test_new_view_and_exposure_reuse_the_compiled_kernel(seed: int, kind: str, s
     """Catches: the camera pose or an emitter rescale (area/point/spot lights indoors, the
     envmap's scale outdoors) reaching the kernel as a literal, so that every view (and the
     exposure fix after the preview) compiles the whole scene again: the cost the issue measured
-    (seconds per image). Sunsky scenes are the documented exception (Mitsuba bakes its scale)."""
+    (seconds per image); and the sample count becoming a literal (generator 3 checks extra views
+    at fewer spp with the input's kernel). Sunsky scenes are the documented exception (Mitsuba bakes its scale)."""
+    from dataclasses import replace
+
     import drjit as dr
 
     from mcdenoise.render.api import RenderSettings, render_samples
@@ -328,6 +331,7 @@ def test_new_view_and_exposure_reuse_the_compiled_kernel(seed: int, kind: str, s
         render_samples(ps.loaded, settings)  # after the emitter rescale
         set_camera(ps.loaded, view_camera(ps, np.random.default_rng(0)))
         render_samples(ps.loaded, settings)  # another view
+        render_samples(ps.loaded, replace(settings, spp=1))  # generator 3's cheap view check
         big = [k for k in dr.kernel_history() if (k.get("operation_count") or 0) > 1000]
         # In-memory reuse only: ``cache_hit`` is also true for a kernel loaded from the disk cache,
         # which hides a real second trace and compile-or-load on a warm machine (issue 18).

@@ -80,6 +80,9 @@ def add_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--world", choices=("classic", "rich"), default="classic",
                    help="procedural world: classic, or rich (window-lit rooms, small bright emitters, night, "
                         "exposure over 2.3 decades; docs/DATASETS.md) (default classic)")
+    p.add_argument("--generator", type=int, default=None,
+                   help="scene pipeline version (default: the latest; a dataset made by an older one names it "
+                        "in dataset.json, and its recipe states it)")
     p.add_argument("--max-depth", type=int, default=6, help="path depth of input and reference (default 6)")
     p.add_argument("--objects", default="10-50", help="MIN-MAX objects per scene (default 10-50)")
     p.add_argument("--split", default="0.8,0.1,0.1", help="train,val,test fractions of scenes (default 0.8,0.1,0.1)")
@@ -137,7 +140,7 @@ def run(args: argparse.Namespace) -> int:
         count=args.count, seed=args.seed, spp=args.spp, ref_spp=args.ref_spp, width=w, height=h,
         frames=args.frames, max_depth=args.max_depth, kind=args.kind, fractions=parse_split(args.split),
         objects=parse_objects(args.objects), views=args.views, world=args.world,
-        variant=variant,
+        variant=variant, **({} if args.generator is None else {"generator": args.generator}),
     )
     summary = render_dataset(args.out, cfg, shard=shard, shards=shards, progress=not args.no_progress,
                              log=lambda s: print(s, file=sys.stderr), nonfinite=args.nonfinite, max_bytes=max_bytes(args))

@@ -25,6 +25,7 @@ __all__ = [
     "DatasetConfig",
     "CONFIG_FILE",
     "GENERATOR",
+    "GENERATORS",
     "RENDER_VARIANTS",
     "scene_name",
     "image_paths",
@@ -35,9 +36,13 @@ __all__ = [
 
 CONFIG_FILE = "dataset.json"
 #: Version of the drawing + preview + exposure pipeline. Images of one dataset must all come from
-#: one version (2: preview on the loaded scene with the input's settings; 1: 32-pixel preview
+#: one version (3: an extra view's camera is checked at a quarter of the input's spp, measured on
+#: 2x2 blocks, with the input's kernel; 2: every check at the input's settings; 1: 32-pixel preview
 #: with Mitsuba's path integrator); a dataset.json without the field was made by version 1.
-GENERATOR = 2
+GENERATOR = 3
+#: Versions this code renders: new datasets get :data:`GENERATOR`; a dataset made by an older one
+#: resumes, and renders again from its recipe, with that version (``--generator``).
+GENERATORS = (2, 3)
 #: Mitsuba variants a dataset may record (``mcdenoise.render._mitsuba.VARIANTS`` less ``auto``).
 RENDER_VARIANTS = ("llvm_ad_rgb", "cuda_ad_rgb")
 
@@ -96,9 +101,9 @@ class DatasetConfig:
             raise SceneError(f"dataset: seed {self.seed} must be in [0, {2**32 - 1}] (seeds are 32-bit)")
         if self.views > 1 and self.frames > 1:
             raise SceneError("dataset: views > 1 and frames > 1 cannot be combined (a sequence is one view)")
-        if self.generator != GENERATOR:
+        if self.generator not in GENERATORS:
             raise SceneError(f"dataset: made by scene pipeline version {self.generator}; this mcdenoise renders "
-                             f"version {GENERATOR} (render a new dataset)")
+                             f"versions {', '.join(map(str, GENERATORS))} (render a new dataset)")
         from mcdenoise.render.procedural.rich import WORLDS
 
         if self.world not in WORLDS:
@@ -205,6 +210,7 @@ def _write_config(root: Path, cfg: DatasetConfig) -> None:
     old = _read_config(root)
     if old is not None:
         diff = [f"{f.name}: {getattr(old, f.name)!r} there, {getattr(cfg, f.name)!r} asked"
+                + (f" (--generator {old.generator})" if f.name == "generator" and old.generator in GENERATORS else "")
                 for f in fields(cfg) if getattr(old, f.name) != getattr(cfg, f.name)
                 and not (f.name == "variant" and old.variant is None)]
         if old.variant is None and cfg.variant is not None:

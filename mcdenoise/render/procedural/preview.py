@@ -52,6 +52,7 @@ def preview_stats(
     scene: Any = None,
     settings: Any = None,
     record_position: bool = False,
+    block: int = 1,
 ) -> PreviewStats:
     """Render ``ps`` cheaply with our integrator and measure luminance statistics, plus object
     coverage from one ray per pixel centre.
@@ -61,7 +62,9 @@ def preview_stats(
     ``scene`` and the input image's own :class:`~mcdenoise.render.api.RenderSettings` (size, spp,
     motion), so that the preview compiles exactly the kernel the input then reuses: the check
     costs one input-sized trace, not a compilation of its own. ``seed`` replaces the settings'
-    seed (the preview's noise is independent of the input's).
+    seed (the preview's noise is independent of the input's). ``block`` > 1 measures the luminance
+    statistics on the means of ``block`` x ``block`` pixel blocks (a low-spp check; the image's
+    last rows and columns that fill no block are left out); coverage stays per pixel.
     """
     from dataclasses import replace
 
@@ -80,6 +83,10 @@ def preview_stats(
     img = arrays["radiance"].mean(axis=0, dtype=np.float64).transpose(1, 2, 0)
     del arrays
     lum = luminance(img)
+    if block > 1:
+        hb, wb = lum.shape[0] // block, lum.shape[1] // block
+        if hb and wb:
+            lum = lum[: hb * block, : wb * block].reshape(hb, block, wb, block).mean(axis=(1, 3))
     is_obj = _object_mask(mi, scene, settings.width, settings.height)
     finite = bool(np.isfinite(img).all())
     mean = float(lum.mean()) if finite else 0.0
