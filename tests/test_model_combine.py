@@ -203,3 +203,33 @@ def test_a_halo_over_a_missed_pixel_gives_way_to_the_noisy_mean() -> None:
     torch.testing.assert_close(out[..., :4], batch["radiance"][..., :4])
     torch.testing.assert_close(out[..., 4:], off[..., 4:])
     assert float(off[..., :4].min()) > 1.0  # without the rule the halo stays
+
+
+@pytest.mark.parametrize("preset,kernel", [("ens", 1), ("small_k3", 3)])
+def test_shrink_blends_the_learned_combination_toward_oidn(preset: str, kernel: int) -> None:
+    """``shrink`` a: catches the share moved to a tap other than OIDN's centre (with 3x3 taps the
+    centre is tap 4, not 0), weights that no longer sum to 1, and any output other than exactly
+    ``OIDN + a * (learned - OIDN)`` (float64, where the blend is exact to rounding)."""
+    from dataclasses import replace
+
+    from mcdenoise.models.combine import Combine
+
+    torch.manual_seed(5)
+    full = build_model("combine", preset).double().eval()
+    with torch.no_grad():
+        for p in full.parameters():
+            p.normal_(0, 0.5)
+    half = Combine(replace(full.config, shrink=0.5)).double().eval()
+    half.load_state_dict(full.state_dict())
+    assert full.config.kernel == kernel
+    batch = synthetic_batch(full, height=13, width=15, dtype=torch.float64, generator=torch.Generator().manual_seed(6))
+    with torch.no_grad():
+        w = half.weights(batch)
+        a, b = half(batch), full(batch)
+    torch.testing.assert_close(w.sum(1), torch.ones_like(w[:, 0]))
+    oidn = batch["oidn"]
+    halo = (batch["albedo"].abs().sum(1, keepdim=True) == 0) & (batch["normal"].abs().sum(1, keepdim=True) == 0)
+    want = torch.where(halo, a, oidn + 0.5 * (b - oidn))  # the miss-halo rule acts after the blend
+    torch.testing.assert_close(a, want, rtol=1e-10, atol=1e-12)
+    with pytest.raises(ValueError, match="shrink"):
+        Combine(replace(full.config, shrink=0.0))

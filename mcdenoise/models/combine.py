@@ -69,6 +69,13 @@ class CombineConfig:
     50 from OIDN with prefiltered guides, 0.007 in the noisy mean). Measured with the shipped
     ``ens`` weights (``mcdenoise eval --data data/rich_val --split val``): 7.1x OIDN high's relMSE
     at 16 spp before the rule existed, 1.34x with it; the third-party figures did not move."""
+    shrink: float = 1.0
+    """Share of the learned weights in the output; the rest goes to OIDN's centre tap:
+    ``w' = shrink * w + (1 - shrink) * onehot(OIDN)``, so the output is ``OIDN + shrink *
+    (learned combination - OIDN)``, still a convex combination of the candidates. Below 1 it
+    shrinks a combiner toward OIDN on scenes unlike its training data, where its choices are
+    least reliable (``scripts/blend_probe.py``: on our own held-out images the mean relMSE ratio
+    to OIDN high is lowest near 0.7, and the worst image moves toward OIDN as it falls)."""
     prefiltered: bool = False
     """Add a third candidate, ``oidn_pf``: OIDN with its guides prefiltered by OIDN first and
     passed as clean (OIDN's best mode for noisy guides). Measured before training (OIDN 2.5.1,
@@ -143,6 +150,8 @@ class Combine(Denoiser):
         n_in = N_FEATURES + (N_VARIANCE_FEATURES if config.use_variance else 0) + (N_PF_FEATURES if config.prefiltered else 0)
         self.names = PF_CANDIDATES if config.prefiltered else CANDIDATES
         self.net = UNet(n_in, len(self.names) * k2, [(w, w)] * config.levels, (w, w), [(w, w)] * config.levels)
+        if not 0 < config.shrink <= 1:
+            raise ValueError(f"shrink must be in (0, 1], got {config.shrink}")
         if not 0 <= config.start_logit < LOGIT_BOUND:
             raise ValueError(f"start_logit must be in [0, {LOGIT_BOUND}), got {config.start_logit}")
         with torch.no_grad():  # (nearly) the identity on OIDN at the start
@@ -160,7 +169,12 @@ class Combine(Denoiser):
     def weights(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
         """(B, len(self.names) * k * k, H, W) softmax weights."""
         raw = self.net(self.features(batch))
-        return torch.softmax(raw / (1 + raw.abs() / LOGIT_BOUND), dim=1)
+        w = torch.softmax(raw / (1 + raw.abs() / LOGIT_BOUND), dim=1)
+        a = self.config.shrink
+        if a < 1:  # OIDN's centre tap is channel k*k // 2 (OIDN is the first candidate)
+            centre = self.config.kernel * self.config.kernel // 2
+            w = a * w + torch.nn.functional.one_hot(torch.tensor(centre), w.shape[1]).to(w).view(1, -1, 1, 1) * (1 - a)
+        return w
 
     def candidates(self, batch: dict[str, torch.Tensor]) -> list[torch.Tensor]:
         """The candidate images, in ``self.names`` order (the noisy one clamped, see the config)."""
