@@ -48,6 +48,9 @@ def main() -> int:
     ap.add_argument("--ref-spp", type=int, default=256)
     ap.add_argument("--seed", type=int, default=20261123)
     ap.add_argument("--objects", default="10-50")
+    ap.add_argument("--world", default="classic", help="procedural world (classic or rich)")
+    ap.add_argument("--max-depth", type=int, default=6, help="path depth of both sides (default 6)")
+    ap.add_argument("--generator", type=int, default=None, help="scene pipeline version (default: the latest)")
     ap.add_argument("--cornell", type=int, default=3, help="cornell-box renders (default 3; the first is not counted)")
     cache = ap.add_mutually_exclusive_group()
     cache.add_argument("--cold", dest="cold", action="store_true", default=True, help="fresh kernel cache (default)")
@@ -72,15 +75,17 @@ def main() -> int:
             t0 = time.perf_counter()
             scene = load_scene("cornell-box", width=n, height=n)
             render_image(scene, Path(tmp.name) / f"cornell_{len(cornell)}",
-                         RenderSettings(spp=args.spp, ref_spp=args.ref_spp, width=n, height=n))
+                         RenderSettings(spp=args.spp, ref_spp=args.ref_spp, width=n, height=n, max_depth=args.max_depth))
             cornell.append(time.perf_counter() - t0)
             del scene
 
     render_cornell(max(2, args.cornell))
 
     kw = {"views": args.views} if args.views != 1 else {}
+    if args.generator is not None:
+        kw["generator"] = args.generator
     cfg = DatasetConfig(count=args.count, seed=args.seed, spp=args.spp, ref_spp=args.ref_spp, width=n, height=n,
-                        objects=parse_objects(args.objects), **kw)
+                        objects=parse_objects(args.objects), world=args.world, max_depth=args.max_depth, **kw)
     root = Path(tmp.name) / "ds"
     t0 = time.perf_counter()
     render_dataset(root, cfg, progress=False)
@@ -107,7 +112,7 @@ def main() -> int:
     res = {
         "machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, load {os.getloadavg()[0]:.1f}",
         "config": {"count": cfg.count, "views": args.views, "size": n, "spp": cfg.spp, "ref_spp": cfg.ref_spp,
-                   "seed": cfg.seed, "objects": list(cfg.objects), "kernel_cache": "cold" if args.cold else "warm"},
+                   "seed": cfg.seed, "objects": list(cfg.objects), "world": cfg.world, "max_depth": cfg.max_depth, "generator": cfg.generator, "kernel_cache": "cold" if args.cold else "warm"},
         "cornell_s": [round(c, 2) for c in cornell],
         "cornell_per_image_s": round(cornell_s, 2),
         "wall_s": round(wall, 2),

@@ -71,6 +71,7 @@ SPPS = (4, 8)
 REF_SPP = 1024
 #: Models with random weights run only for the highlight bound (their quality means nothing).
 RANDOM_MODELS = ("wskp_mr", "combine")
+SHIPPED = Path(__file__).resolve().parent.parent / "mcdenoise" / "models" / "shipped"
 
 
 def _scene_code(scene: str) -> str:
@@ -111,8 +112,9 @@ def render(request, tmp_path_factory):
         path = cache / f"{scene}_{SIZE}px_{spp}spp_s{seed}{tag}_bpy{BLENDER_VERSION}_{code}.exr"
         if not path.exists():
             tmp = path.with_name(f".{path.name}.{os.getpid()}.exr")
+            # Light passes on: the diffuse/specular split that kpcn-pixel reads (docs/DENOISE.md).
             cmd = [BLENDER_PYTHON, str(SCENES_PY), scene, str(tmp), "--spp", str(spp), "--size", str(SIZE),
-                   "--seed", str(seed)] + (["--blender-denoise"] if blender_denoise else [])
+                   "--seed", str(seed), "--light-passes"] + (["--blender-denoise"] if blender_denoise else [])
             done = subprocess.run(cmd, capture_output=True, text=True, timeout=900)
             assert done.returncode == 0 and tmp.exists(), f"Blender render failed: {' '.join(cmd)}\n{done.stderr[-3000:]}"
             tmp.replace(path)
@@ -165,12 +167,17 @@ def test_the_recipe_writes_every_denoising_pass(render):
     _, on = read_exr_file(render("glass", 4, blender_denoise=True))
     _, off = read_exr_file(render("glass", 4))
     for layer, comps in (("Noisy Image", "RGBA"), ("Combined", "RGBA"), ("Denoising Albedo", "RGB"),
-                         ("Denoising Normal", "XYZ"), ("Denoising Depth", "Z")):
+                         ("Denoising Normal", "XYZ"), ("Denoising Depth", "Z"), ("DiffDir", "RGB"), ("DiffInd", "RGB"),
+                         ("DiffCol", "RGB")):
         for c in comps:
             assert f"ViewLayer.{layer}.{c}" in on, f"ViewLayer.{layer}.{c} missing: {sorted(on)}"
     assert not any(".Noisy Image." in n for n in off) and "ViewLayer.Combined.R" in off
     inputs = from_exr(render("glass", 4, blender_denoise=True))
-    assert {"radiance", "albedo", "normal", "depth"} <= inputs.channels("pixels")
+    assert {"radiance", "albedo", "normal", "depth", "diffuse", "specular"} <= inputs.channels("pixels")
+    # The split adds up to the colour Blender wrote (Cycles' light passes are divided by DiffCol).
+    np.testing.assert_allclose(inputs.pixels["diffuse"] + inputs.pixels["specular"], inputs.pixels["radiance"],
+                               rtol=1e-6, atol=1e-6)
+    assert float(inputs.pixels["diffuse"].mean()) > 0.05 * float(inputs.pixels["radiance"].mean())
     assert np.array_equal(inputs.pixels["radiance"], _rgb(on, "ViewLayer.Noisy Image"))
     # Blender's denoiser off: the colour is Combined, read with a note (the same samples: seed 0).
     with pytest.warns(blender.BlenderNote, match="no 'Noisy Image' pass"):
@@ -223,6 +230,8 @@ def test_denoise_a_cycles_render(scene, render, random_weights, tmp_path, capfd,
                "oidn_pf": float(relmse(oidn_denoise(pixels["radiance"], pixels["albedo"], pixels["normal"],
                                                     prefilter="high"), ref))}
         runs = {"default": (), "oidn": ("--model", "oidn"), "wskp": ("--model", "wskp")}
+        if (SHIPPED / "kpcn-pixel.safetensors").is_file():  # kpcn on Blender's light passes (issue 21 item 2)
+            runs["kpcn-pixel"] = ("--model", "kpcn-pixel")
         runs.update({name: ("--model", str(path)) for name, path in random_weights.items()})
         for label, args in runs.items():
             out, got, said = _denoise(src, tmp_path / f"{label}_{spp}.exr", capfd, *args)
