@@ -206,3 +206,16 @@ def test_a_run_folder_is_chosen_and_never_cached(run: Path) -> None:
     first, info = choose_model(inputs, str(run), precision="float32")
     again, _ = choose_model(inputs, str(run), precision="float32")
     assert info["source"] == "run" and first.config.channels == 6 and again is not first
+
+
+def test_shipped_weights_load_by_their_file_name() -> None:
+    """Catches a shipped preset other than ``small`` (kpcn-pixel, combine-ens) that no command can
+    name (``--model kpcn`` means kpcn-small), and a typo'd preset that falls back to another."""
+    from mcdenoise.models.weights import WeightsError, load_denoiser, shipped
+
+    for sw in shipped():
+        net, info = load_denoiser(f"{sw.name}-{sw.preset}")
+        assert (info["name"], info["preset"], info["source"]) == (sw.name, sw.preset, "shipped")
+        assert info["label"] == f"{sw.name}-{sw.preset}" and Path(info["weights"]) == sw.weights
+    with pytest.raises(WeightsError, match="preset 'nope'"):
+        load_denoiser("kpcn-nope")

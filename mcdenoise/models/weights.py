@@ -195,7 +195,8 @@ def _from_run(run: Path) -> tuple[Denoiser, dict[str, Any]]:
 
 def load_denoiser(spec: str | Path, *, preset: str | None = None, model: str | None = None,
                   device: torch.device | str = "cpu") -> tuple[Denoiser, dict[str, Any]]:
-    """Resolve ``spec`` (registered name, run folder or ``.safetensors`` file) to a model in eval mode.
+    """Resolve ``spec`` (registered name, shipped ``NAME-PRESET`` such as ``kpcn-pixel``, run folder or
+    ``.safetensors`` file) to a model in eval mode.
 
     Returns ``(model, info)``; ``info`` has ``name``, ``preset``, ``weights`` (path), ``source``
     (``shipped``, ``run`` or ``file``), ``label`` (a short name for tables) and, for shipped
@@ -223,6 +224,13 @@ def load_denoiser(spec: str | Path, *, preset: str | None = None, model: str | N
         net = model_from_config(s, sw.preset, sw.card.get("model_config"))
         load_weights(net, sw.weights)
         info = {"name": s, "preset": sw.preset, "weights": str(sw.weights), "source": "shipped", "label": s, "card": sw.card}
+    elif s.rpartition("-")[0] in MODELS:  # NAME-PRESET, as the shipped files are named (kpcn-pixel, combine-ens)
+        name, _, pre = s.rpartition("-")
+        sw = shipped_weights(name, pre)
+        net = model_from_config(name, sw.preset, sw.card.get("model_config"))
+        load_weights(net, sw.weights)
+        info = {"name": name, "preset": sw.preset, "weights": str(sw.weights), "source": "shipped", "label": s, "card": sw.card}
     else:
-        raise WeightsError(f"{s}: neither a registered model ({', '.join(sorted(MODELS))}), a run folder, nor a weights file")
+        raise WeightsError(f"{s}: neither a registered model ({', '.join(sorted(MODELS))}), a shipped NAME-PRESET, "
+                           "a run folder, nor a weights file")
     return net.to(device).eval(), info

@@ -1,0 +1,46 @@
+"""Copy a weights file with fields of its model configuration replaced (the tensors untouched):
+the start of a fine-tune into a preset whose layers match but whose inputs or rules differ.
+
+    python scripts/reconfigure_weights.py mcdenoise/models/shipped/kpcn-small.safetensors \
+        runs/kpcn_pixel_init.safetensors --preset pixel --set feature_hit=first variance=window variance_window=5
+
+Values are read as JSON where they parse (5, 0.25, true), else as strings. The result must still
+build: the model is constructed from the new configuration and loads the tensors strictly.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+
+from safetensors import safe_open
+from safetensors.torch import save_file
+
+from mcdenoise.models.weights import model_from_config
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("src")
+    ap.add_argument("dst")
+    ap.add_argument("--preset", help="preset name to record (default: the source's)")
+    ap.add_argument("--set", nargs="+", default=[], metavar="FIELD=VALUE")
+    a = ap.parse_args()
+    with safe_open(a.src, "pt") as f:
+        meta = dict(f.metadata() or {})
+        tensors = {k: f.get_tensor(k) for k in f.keys()}
+    cfg = json.loads(meta["model_config"])
+    for item in a.set:
+        key, _, raw = item.partition("=")
+        try:
+            cfg[key] = json.loads(raw)
+        except ValueError:
+            cfg[key] = raw
+    meta.update(model_config=json.dumps(cfg), step="0", preset=a.preset or meta.get("preset", ""))
+    model = model_from_config(meta["model"], meta["preset"], cfg)  # refuses unknown fields
+    model.load_state_dict(tensors, strict=True)
+    save_file(tensors, a.dst, metadata=meta)
+    print(f"wrote {a.dst}: {meta['model']} ({meta['preset']}) with {json.dumps(cfg)}")
+
+
+if __name__ == "__main__":
+    main()
