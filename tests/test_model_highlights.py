@@ -22,7 +22,7 @@ from mcdenoise.infer.receptive import receptive_field
 from mcdenoise.models import emitters
 from mcdenoise.models.emitters import ALBEDO_CHANNELS, as_reflectance, emitter_mask
 from mcdenoise.models.registry import build_model, list_models, synthetic_batch
-from mcdenoise.models.weights import WeightsError, shipped_weights
+from mcdenoise.models.weights import shipped
 
 SIZE = 40
 #: An output pixel may exceed the largest input radiance within the model's receptive field by
@@ -39,20 +39,16 @@ EMITTERS = [
 ALL = [e.name for e in list_models()]
 
 
-def _shipped(name: str) -> bool:
-    try:
-        shipped_weights(name, "small")
-    except WeightsError:
-        return False
-    return True
+#: Every registered model at its small preset with random weights, kpcn's pixel preset (window
+#: variances read the emitter pixels too), and every shipped file at its own preset (ens, pixel).
+CASES = ([f"{n}:small:random" for n in ALL] + ["kpcn:pixel:random"]
+         + [f"{s.name}:{s.preset}:shipped" for s in shipped()])
 
 
-CASES = [(n, "random") for n in ALL] + [(n, "shipped") for n in ALL if _shipped(n)]
-
-
-def _model(name: str, weights: str) -> torch.nn.Module:
+def _model(case: str) -> torch.nn.Module:
+    name, preset, weights = case.split(":")
     torch.manual_seed(0)
-    model = build_model(name, "small", weights="shipped" if weights == "shipped" else None)
+    model = build_model(name, preset, weights="shipped" if weights == "shipped" else None)
     return model.eval()
 
 
@@ -129,15 +125,16 @@ def _neighbourhood_max(x: torch.Tensor, radius: int) -> torch.Tensor:
     return F.max_pool2d(x.unsqueeze(1), 2 * r + 1, stride=1, padding=r).squeeze(1)
 
 
-@pytest.mark.parametrize("name,weights", CASES)
-def test_no_output_exceeds_its_input_neighbourhood(name: str, weights: str) -> None:
+@pytest.mark.parametrize("case", CASES)
+def test_no_output_exceeds_its_input_neighbourhood(case: str) -> None:
     """Catches issue 21's exploding highlights: wskp (and wskp_mr, kpcn's diffuse branch) divided
     the radiance by an emitter's albedo (up to 10^3) and multiplied the filtered neighbourhood back
     by it, so a pixel came out far above every input radiance it can see. Every registered model,
     random and shipped weights: no output pixel above FACTOR x the largest input radiance within
     its receptive field. (dpcn predicts colours directly, so for it the bound holds by its emitter
     pixels passing through and by this test, not by construction.)"""
-    model = _model(name, weights)
+    model = _model(case)
+    name, weights = case.split(":")[0], case
     batch = emitter_batch(model)
     with torch.no_grad():
         out = model(batch)
@@ -152,16 +149,17 @@ def test_no_output_exceeds_its_input_neighbourhood(name: str, weights: str) -> N
                     f"maximum, worst {ratio:.3g}x, e.g. at (y={int(ys[0])}, x={int(xs[0])})")
 
 
-@pytest.mark.parametrize("name,weights", CASES)
-def test_lights_do_not_bleed_into_their_neighbours(name: str, weights: str) -> None:
+@pytest.mark.parametrize("case", CASES)
+def test_lights_do_not_bleed_into_their_neighbours(case: str) -> None:
     """Catches the halo around a light: its 10^4 spread into the surfaces around it by their
     kernels (shipped wskp, kpcn and layer put 260-1600 on surfaces of about 1). Every output pixel
     that is not an emitter stays within FACTOR x the largest input radiance of the pixels that are
     not emitters within its receptive field. Not combine: its candidates are OIDN's output and the
     noisy mean, both with the light in them, and its bound is over those (docs/models/combine.md)."""
+    name, weights = case.split(":")[0], case
     if name == "combine":
         pytest.skip("combine mixes OIDN's output and the noisy mean, lights included (module docstring)")
-    model = _model(name, weights)
+    model = _model(case)
     batch = emitter_batch(model)
     with torch.no_grad():
         out = model(batch)
@@ -177,11 +175,12 @@ def test_lights_do_not_bleed_into_their_neighbours(name: str, weights: str) -> N
                     f"them, worst {ratio:.3g}x: the lights bleed into them")
 
 
-@pytest.mark.parametrize("name,weights", CASES)
-def test_emitter_pixels_pass_through(name: str, weights: str) -> None:
+@pytest.mark.parametrize("case", CASES)
+def test_emitter_pixels_pass_through(case: str) -> None:
     """Catches an emitter pixel that is still filtered (blurred into, or darkened by, its
     neighbours): every model that reads an albedo returns the input radiance there."""
-    model = _model(name, weights)
+    model = _model(case)
+    name, weights = case.split(":")[0], case
     if not any(n in model.required_channels() for n in ALBEDO_CHANNELS) or name == "combine":
         pytest.skip(f"{name} reads no albedo it divides by")
     batch = emitter_batch(model)
@@ -209,13 +208,14 @@ def _unguarded(monkeypatch: pytest.MonkeyPatch) -> None:
         monkeypatch.setattr(mod, "pass_through", lambda out, radiance, mask: out)
 
 
-@pytest.mark.parametrize("name,weights", CASES)
-def test_rule_is_the_identity_without_emitters(name: str, weights: str, monkeypatch: pytest.MonkeyPatch) -> None:
+@pytest.mark.parametrize("case", CASES)
+def test_rule_is_the_identity_without_emitters(case: str, monkeypatch: pytest.MonkeyPatch) -> None:
     """Catches a fix that moves the numbers of inputs in our own convention (albedo in [0, 1],
     0 on a miss, as every procedural dataset is): with every albedo <= 1 (some exactly 0 and 1,
     some pixels with normal 0) the output is bit-identical to the model without the rule, shipped
     weights included, in training mode (gradients on) and at inference."""
-    model = _model(name, weights)
+    model = _model(case)
+    name, weights = case.split(":")[0], case
     batch = surface_batch(model, seed=4)
     for n in ALBEDO_CHANNELS:
         if n in batch:
@@ -292,7 +292,7 @@ def test_tiles_match_the_whole_image_around_lights(name: str) -> None:
     from mcdenoise.infer.run import denoise_inputs
     from mcdenoise.infer.sources import from_arrays
 
-    model = _model(name, "random")
+    model = _model(f"{name}:small:random")
     batch = emitter_batch(model, size=64)
     for n, v in ((n, v) for n, v in batch.items() if n != "scene_features"):
         block = v[..., 4:16, :]
