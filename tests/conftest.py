@@ -10,3 +10,7 @@ import torch
 
 #: Devices to parametrise op and model tests over, in order of preference for fallback.
 DEVICES: list[str] = (["cuda"] if torch.cuda.is_available() else []) + ["cpu"]
+
+#: tests/test_cuda.py holds checks that need a GPU: not collected at all without one, so a
+#: CPU-only run reports no skipped cases for them (`scripts/gpu_check.sh` runs them on a GPU).
+collect_ignore = [] if torch.cuda.is_available() else ["test_cuda.py"]
