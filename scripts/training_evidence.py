@@ -33,12 +33,29 @@ def _flag(cmd: str, name: str, default: float | None = None) -> float | None:
 
 
 def dataset_mp(cmd: str | None) -> float:
-    """Megapixels of the images a `mcdenoise dataset` command renders (all splits)."""
+    """Megapixels of the images a `mcdenoise dataset` command renders (all splits); a card of a
+    run on several datasets joins their commands with ` && `."""
     if not cmd:
         return 0.0
+    if " && " in cmd:
+        return sum(dataset_mp(c) for c in cmd.split(" && "))
     size = _flag(cmd, "--size", 64.0)
     w, h = _flag(cmd, "--width", size), _flag(cmd, "--height", size)
     return (_flag(cmd, "--count", 0.0) or 0.0) * (_flag(cmd, "--views", 1.0) or 1.0) * w * h / 1e6
+
+
+def chain_dataset_mp(st: list[dict[str, Any]]) -> float:
+    """Megapixels of every dataset of a chain, each once however many stages trained on it (a
+    dataset is its ``--out`` and ``--seed``: older cards spell the same command differently)."""
+    import re
+
+    unique: dict[tuple[str, str], str] = {}
+    for s in st:
+        for c in (s["dataset"] or "").split(" && "):
+            if c.strip():
+                key = tuple((re.search(rf"{f} (\S+)", c) or [None, ""])[1] for f in ("--out", "--seed"))
+                unique.setdefault(key, c)
+    return sum(dataset_mp(c) for c in unique.values())
 
 
 def seen_mp(cmd: str | None, steps: float | None = None) -> float:
@@ -99,7 +116,7 @@ def points(spp: int) -> list[dict[str, Any]]:
             rows.append({
                 "model": card_path.stem, "commit": commit, "relmse": model, "oidn": oidn,
                 "cpu_h": sum(s["cpu_s"] or 0.0 for s in st) / 3600,
-                "dataset_mp": sum(dataset_mp(s["dataset"]) for s in st),
+                "dataset_mp": chain_dataset_mp(st),
                 "seen_mp": sum(seen_mp(s["train"], s["steps"]) for s in st),
                 "stages": len(st),
             })
