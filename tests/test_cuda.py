@@ -30,10 +30,11 @@ def test_cuda_forward_equals_cpu_in_float64(name: str, preset: str) -> None:
     model = build_model(name, preset).double().eval()
     batch = synthetic_batch(model, spp=2, height=21, width=27, dtype=torch.float64,
                             generator=torch.Generator().manual_seed(1))
+    device = torch.device("cuda")
     with torch.no_grad():
         cpu = model(batch)
-        gpu = model.cuda()({k: v.cuda() for k, v in batch.items()})
-    assert gpu.is_cuda
+        gpu = model.to(device)({k: v.to(device) for k, v in batch.items()})
+    assert gpu.device.type == "cuda"
     torch.testing.assert_close(gpu.cpu(), cpu, rtol=1e-9, atol=1e-9)
 
 

@@ -225,7 +225,7 @@ def test_several_datasets_train_on_their_union(ds: Path, tmp_path: Path) -> None
     import json
 
     from mcdenoise.train.config import ConfigError, TrainConfig, manifest_hash
-    from mcdenoise.train.data import dataset_dirs
+    from mcdenoise.data.dataset import dataset_dirs
     from mcdenoise.train.loop import train
 
     other = tmp_path / "other"  # other image names, so its manifest differs from ds's

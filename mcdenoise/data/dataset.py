@@ -28,10 +28,22 @@ from mcdenoise.data.format import FORMAT_VERSION, META_FILE, ImageFolder, read_j
 from mcdenoise.errors import FormatError
 from mcdenoise.io.atomic import atomic_file
 
-__all__ = ["SPLITS", "MANIFEST_FILE", "assign_splits", "write_manifest", "read_manifest", "read_manifest_settings", "Dataset"]
+__all__ = ["SPLITS", "MANIFEST_FILE", "assign_splits", "write_manifest", "read_manifest", "read_manifest_settings", "Dataset",
+           "dataset_dirs"]
 
 SPLITS = ("train", "val", "test")
 MANIFEST_FILE = "manifest.json"
+
+
+def dataset_dirs(spec: str | os.PathLike | Sequence[str | os.PathLike]) -> list[Path]:
+    """The dataset folders of a ``--data`` value: one folder, several separated by commas
+    (``data/a,data/b``), or a list of folders."""
+    if isinstance(spec, (list, tuple)):
+        return [Path(p) for p in spec]
+    parts = [p.strip() for p in str(spec).split(",")]
+    if not all(parts):
+        raise ValueError(f"--data {spec!r}: an empty dataset name between commas")
+    return [Path(p) for p in parts]
 
 
 def _scene_key(scene: str, seed: int) -> str:

@@ -135,14 +135,15 @@ _PREPARED_LOCK = threading.Lock()
 def _weights_identity(spec: str, preset: str | None) -> tuple[Any, ...] | None:
     """What names the weights ``spec`` loads (files' paths, inodes, sizes and change times), or None
     when it is not a single file (a run folder, whose checkpoint moves while it trains: never cached)."""
-    from mcdenoise.models.weights import WeightsError, shipped_weights
+    from mcdenoise.models.weights import WeightsError, shipped_name, shipped_weights
 
     p = Path(spec)
+    named = None if p.exists() else shipped_name(spec, preset)
     if p.is_file():
         files = [p]
-    elif spec in MODELS:
+    elif named is not None:
         try:
-            w = shipped_weights(spec, preset or "small").weights
+            w = shipped_weights(*named).weights
         except WeightsError:
             return None  # let load_denoiser say what is shipped
         files = [w, w.with_suffix(".json")]  # the card holds the model config

@@ -34,7 +34,9 @@ __all__ = ["dataset_command", "train_command", "model_card", "card_markdown", "s
 def _datasets_command(spec: str) -> str | None:
     """The commands that render every procedural dataset of a ``--data`` value again (several are
     separated by commas), joined by `` && ``; None when none of them was made by ``mcdenoise dataset``."""
-    cmds = [dataset_command(d) for d in (p.strip() for p in str(spec).split(",")) if (Path(d) / "dataset.json").is_file()]
+    from mcdenoise.data.dataset import dataset_dirs
+
+    cmds = [dataset_command(d) for d in dataset_dirs(spec) if (d / "dataset.json").is_file()]
     return " && ".join(cmds) or None
 
 

@@ -193,6 +193,17 @@ def _from_run(run: Path) -> tuple[Denoiser, dict[str, Any]]:
     return model, {"name": name, "preset": preset, "weights": str(weights), "source": "run", "step": step, "label": label}
 
 
+def shipped_name(spec: str, preset: str | None = None) -> tuple[str, str] | None:
+    """``(model, preset)`` of shipped weights named by ``spec``: a registered name (``preset``, or
+    ``small``) or ``NAME-PRESET`` as the shipped files are named (``kpcn-pixel``, ``combine-ens``);
+    None when ``spec`` is neither. Whether such weights are shipped is :func:`shipped_weights`'s to say."""
+    load_builtin_models()
+    if spec in MODELS:
+        return spec, preset or "small"
+    name, _, pre = spec.rpartition("-")
+    return (name, pre) if name in MODELS else None
+
+
 def load_denoiser(spec: str | Path, *, preset: str | None = None, model: str | None = None,
                   device: torch.device | str = "cpu") -> tuple[Denoiser, dict[str, Any]]:
     """Resolve ``spec`` (registered name, shipped ``NAME-PRESET`` such as ``kpcn-pixel``, run folder or
@@ -219,13 +230,8 @@ def load_denoiser(spec: str | Path, *, preset: str | None = None, model: str | N
         net = model_from_config(name, pre, cfg)
         load_weights(net, p)
         info = {"name": name, "preset": pre, "weights": str(p), "source": "file", "label": p.stem}
-    elif s in MODELS:
-        sw = shipped_weights(s, preset or "small")
-        net = model_from_config(s, sw.preset, sw.card.get("model_config"))
-        load_weights(net, sw.weights)
-        info = {"name": s, "preset": sw.preset, "weights": str(sw.weights), "source": "shipped", "label": s, "card": sw.card}
-    elif s.rpartition("-")[0] in MODELS:  # NAME-PRESET, as the shipped files are named (kpcn-pixel, combine-ens)
-        name, _, pre = s.rpartition("-")
+    elif (named := shipped_name(s, preset)) is not None:
+        name, pre = named
         sw = shipped_weights(name, pre)
         net = model_from_config(name, sw.preset, sw.card.get("model_config"))
         load_weights(net, sw.weights)

@@ -19,14 +19,14 @@ __all__ = ["render_procedural_image"]
 #: Camera draws per extra view before falling back to the drawn (already checked) camera.
 VIEW_ATTEMPTS = 8
 #: Generator 3: an extra view's check renders at most this many spp (the kernel is the input's:
-#: the sample count is not a literal of it), and measures its statistics on blocks of
-#: ``check_bin(spp)``^2 pixels, so that black and dim fractions see about the input's noise.
+#: the sample count is not a literal of it), and measures its statistics on pixel blocks
+#: (:func:`check_settings`), so that black and dim fractions see about the input's noise.
 CHECK_SPP = 4
 
 
 def check_settings(cfg: DatasetConfig, settings: Any) -> tuple[Any, int]:
-    """``(settings, bin)`` of an extra view's camera check: the input's own under generator 2;
-    under 3, :data:`CHECK_SPP` and a bin that restores about the input's samples per measured
+    """``(settings, block)`` of an extra view's camera check: the input's own under generator 2;
+    under 3, :data:`CHECK_SPP` and a block side that restores about the input's samples per measured
     value (16 spp -> 4 spp on 2x2 blocks). In ``bench_dataset.py --size 256 --spp 16 --views 16``
     the check at the input's settings cost as much as the input itself (2.5-5.9 s per view)."""
     from dataclasses import replace

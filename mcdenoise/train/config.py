@@ -215,13 +215,14 @@ RUNTIME_FIELDS = frozenset({"data", "val_data", "device", "workers", "threads", 
 
 
 def manifest_hash(data_dir: str | Path) -> str:
-    # ``data_dir`` may name several datasets separated by commas (``--data a,b``).
     """SHA-256 of the dataset's ``manifest.json`` bytes: names the exact image list trained on and,
     for procedural datasets that record their Mitsuba variant, the render settings (spp, size,
     seed, depth, world, generator version, variant: the manifest's ``settings`` block). Manifests
-    of older datasets have no such block and keep their bytes, so runs resume against them."""
-    dirs = [p.strip() for p in str(data_dir).split(",")]
-    hashes = [hashlib.sha256((Path(d) / "manifest.json").read_bytes()).hexdigest() for d in dirs]
+    of older datasets have no such block and keep their bytes, so runs resume against them.
+    ``data_dir`` may name several datasets separated by commas (``--data a,b``)."""
+    from mcdenoise.data.dataset import dataset_dirs
+
+    hashes = [hashlib.sha256((d / "manifest.json").read_bytes()).hexdigest() for d in dataset_dirs(data_dir)]
     # One dataset keeps its plain hash (older runs resume); several hash their hashes, in order.
     return hashes[0] if len(hashes) == 1 else hashlib.sha256("\n".join(hashes).encode()).hexdigest()
 

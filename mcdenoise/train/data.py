@@ -21,29 +21,18 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from mcdenoise.data.dataset import Dataset
+from mcdenoise.data.dataset import Dataset, dataset_dirs
 from mcdenoise.data.format import ImageFolder
 from mcdenoise.data.tensors import input_arrays
 from mcdenoise.data.sampler import SAMPLINGS, TARGETS, Crop, CropSampler
 from mcdenoise.train.augment import NUM_OPS, augment_arrays, camera_frame
 
-__all__ = ["DataConfig", "training_batches", "validation_batches", "target_channels", "batch_source", "dataset_dirs",
-           "split_images"]
-
-
-def dataset_dirs(spec: str | os.PathLike | list) -> list[Path]:
-    """The dataset folders of a ``--data`` value: one folder, or several separated by commas
-    (``data/a,data/b``), or a list of folders. Training draws images uniformly from their union."""
-    if isinstance(spec, (list, tuple)):
-        return [Path(p) for p in spec]
-    parts = [p.strip() for p in str(spec).split(",")]
-    if not all(parts):
-        raise ValueError(f"--data {spec!r}: an empty dataset name between commas")
-    return [Path(p) for p in parts]
+__all__ = ["DataConfig", "training_batches", "validation_batches", "target_channels", "batch_source", "split_images"]
 
 
 def split_images(spec: str | os.PathLike | list, split: str) -> list[ImageFolder]:
-    """The ``split`` images of every dataset in ``spec`` (see :func:`dataset_dirs`), in order."""
+    """The ``split`` images of every dataset in ``spec`` (see
+    :func:`mcdenoise.data.dataset.dataset_dirs`), in order: training draws from their union."""
     return [im for d in dataset_dirs(spec) for im in Dataset(d).images(split)]
 
 

@@ -35,7 +35,8 @@ from mcdenoise.models.weights import WeightsError, model_from_config
 from mcdenoise.train.checkpoint import CHECKPOINT_DIR, Checkpoint, intact_checkpoint, load_checkpoint, prune_checkpoints, \
     resume_checkpoint, save_checkpoint, state_dict_for_safetensors
 from mcdenoise.train.config import ConfigError, TrainConfig, check_resume_config, config_document, manifest_hash, read_config
-from mcdenoise.train.data import batch_source, dataset_dirs, training_batches, validation_batches
+from mcdenoise.data.dataset import dataset_dirs
+from mcdenoise.train.data import batch_source, training_batches, validation_batches
 from mcdenoise.train.optim import StepOutcome, lr_at
 from mcdenoise.train.runlog import MetricsLog, plot_loss
 from mcdenoise.train.trainer import Trainer, data_config
@@ -212,7 +213,7 @@ def _train(cfg: TrainConfig, out: Path, resume: bool, force: bool, on_step: Call
     for d in dirs:
         if not (d / "manifest.json").is_file():
             raise ConfigError(f"{d}: not a dataset folder (no manifest.json); make one with `mcdenoise dataset`")
-    data_dir = dirs[0] if len(dirs) == 1 else dirs
+    data_dir = cfg.data  # one folder, or several separated by commas: the readers take either
     if cfg.batch % world:
         raise ConfigError(f"batch {cfg.batch} is not divisible by the {world} processes")
     torch.manual_seed(cfg.seed)
@@ -235,7 +236,7 @@ def _train(cfg: TrainConfig, out: Path, resume: bool, force: bool, on_step: Call
     try:
         batch_source(data_dir, model, data_config(cfg), rank=rank, world_size=world)
         if rank == 0:
-            val_batches = validation_batches(cfg.val_data if cfg.val_data else data_dir, model, data_config(cfg),
+            val_batches = validation_batches(cfg.val_data or data_dir, model, data_config(cfg),
                                              max_images=cfg.val_images)
     except ValueError as e:
         err = ConfigError(str(e))
