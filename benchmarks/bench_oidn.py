@@ -2,6 +2,7 @@
 
     .venv/bin/python benchmarks/bench_oidn.py quality      # high/balanced/fast at 1920x1080: time, relMSE
     .venv/bin/python benchmarks/bench_oidn.py tolerance    # run-to-run noise behind tests/test_oidn.py
+    .venv/bin/python benchmarks/bench_oidn.py parts        # each guide prefilter and colour mode at 1920x1080
 
 ``quality`` denoises a synthetic 1920x1080 HDR image (smooth colour times exponential noise, both
 guides) with each quality, interleaved, the first round a warm-up; it prints the best time of each,
@@ -49,6 +50,51 @@ def quality(reps: int) -> None:
         print(f"{q:<9} best {min(ts):6.2f} s  runs {[round(t, 2) for t in ts]}  relMSE vs clean {err:.5f}")
     best = {q: min(ts) for q, ts in times.items()}
     print(f"high/fast = {best['high'] / best['fast']:.2f}x, high/balanced = {best['high'] / best['balanced']:.2f}x")
+    print("loadavg after", os.getloadavg())
+
+
+def parts(reps: int) -> None:
+    """Time of each piece a combiner could spend OIDN on, at 1920x1080, relative to ``high``.
+
+    The pieces: a guide prefilter (albedo or normal alone, each quality), the colour filter with
+    noisy guides (each quality, albedo only or both) and with ``cleanAux`` guides. Interleaved,
+    round 0 a warm-up; medians.
+    """
+    from mcdenoise.eval.oidn import oidn_prefilter
+
+    rng = np.random.default_rng(0)
+    h, w = 1080, 1920
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+    clean = np.stack([2 + np.sin(xx / 40), 1 + np.cos(yy / 30), 0.5 + (xx + yy) / (h + w)]).astype(np.float32)
+    color = (clean * rng.exponential(1.0, clean.shape)).astype(np.float32)
+    albedo = np.clip(clean / 3 * rng.uniform(0.8, 1.2, clean.shape), 0, 1).astype(np.float32)
+    normal = np.zeros_like(clean)
+    normal[2] = 1.0
+    pieces = {
+        "colour high, albedo+normal": lambda: oidn_denoise(color, albedo, normal, quality="high"),
+        "colour high, albedo only": lambda: oidn_denoise(color, albedo, None, quality="high"),
+        "colour high, no guides": lambda: oidn_denoise(color, None, None, quality="high"),
+        "colour balanced, albedo+normal": lambda: oidn_denoise(color, albedo, normal, quality="balanced"),
+        "colour fast, albedo+normal": lambda: oidn_denoise(color, albedo, normal, quality="fast"),
+        "colour high, cleanAux albedo+normal": lambda: oidn_denoise(color, albedo, normal, quality="high", clean_aux=True),
+        "colour high, cleanAux albedo only": lambda: oidn_denoise(color, albedo, None, quality="high", clean_aux=True),
+        "colour balanced, cleanAux albedo+normal": lambda: oidn_denoise(color, albedo, normal, quality="balanced", clean_aux=True),
+    }
+    for q in QUALITIES:
+        pieces[f"albedo prefilter {q}"] = (lambda q=q: oidn_prefilter(albedo, "albedo", quality=q))
+        pieces[f"normal prefilter {q}"] = (lambda q=q: oidn_prefilter(normal, "normal", quality=q))
+    print("OIDN", version(), "cores", os.cpu_count(), "threads: OIDN's default", "loadavg", os.getloadavg())
+    times: dict[str, list[float]] = {k: [] for k in pieces}
+    for rep in range(reps + 1):
+        for k, fn in pieces.items():
+            t0 = time.perf_counter()
+            fn()
+            if rep:
+                times[k].append(time.perf_counter() - t0)
+    ref = float(np.median(times["colour high, albedo+normal"]))
+    for k, ts in times.items():
+        med = float(np.median(ts))
+        print(f"{k:<42} median {med:6.2f} s  {med / ref:5.2f}x high")
     print("loadavg after", os.getloadavg())
 
 
@@ -102,11 +148,13 @@ def tolerance() -> None:
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("what", choices=["quality", "tolerance"])
-    p.add_argument("--reps", type=int, default=4, help="timed rounds after the warm-up (quality)")
+    p.add_argument("what", choices=["quality", "tolerance", "parts"])
+    p.add_argument("--reps", type=int, default=4, help="timed rounds after the warm-up (quality, parts)")
     args = p.parse_args()
     if args.what == "quality":
         quality(args.reps)
+    elif args.what == "parts":
+        parts(args.reps)
     else:
         tolerance()
 

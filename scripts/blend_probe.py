@@ -1,6 +1,7 @@
 """Probe (issue 20, worst scene): how far a fixed blend ``OIDN + a * (model - OIDN)`` moves the
 mean and the worst per-scene relMSE ratio to OIDN 2.5.1 high. relMSE and PSNR against the
-references stored in each image folder; inputs are the first ``spp`` samples.
+references stored in each image folder; inputs are the first ``spp`` samples (a pixel-only image,
+such as a converted Cycles render, counts at its own spp only).
 
     python scripts/blend_probe.py data/rich_val data/rich_ref data/rich_ref2 data/rich_ref3 --model mcdenoise/models/shipped/combine-ens.safetensors --spp 4 8 16
 """
@@ -39,8 +40,13 @@ def main() -> None:
         for f in folders:
             im = ImageFolder(f)
             ref = im.read_reference(["radiance"])["radiance"]
-            smp = im.samples.read(["radiance", "albedo", "normal"], samples=list(range(spp)))
-            px = {k: v.mean(axis=0) for k, v in smp.items()}
+            if im.samples is None:  # a pixel-only image (e.g. a converted Cycles render): its own spp only
+                if im.meta.spp != spp:
+                    continue
+                px = im.read_noisy(["radiance", "albedo", "normal"])
+            else:
+                smp = im.samples.read(["radiance", "albedo", "normal"], samples=list(range(spp)))
+                px = {k: v.mean(axis=0) for k, v in smp.items()}
             oidn = oidn_denoise(px["radiance"], px["albedo"], px["normal"], threads=2)
             out = np.asarray(mcdenoise.denoise(px["radiance"], px["albedo"], px["normal"], model=a.model))
             r0, p0 = relmse(oidn, ref), psnr(oidn, ref)

@@ -30,6 +30,8 @@ import argparse
 import math
 import sys
 
+from mcdenoise.render.cycles.recipe import apply_recipe
+
 SCENES = ("room", "dof", "glass")
 
 
@@ -174,36 +176,10 @@ def render(scene_name: str, out: str, *, spp: int, size: int = 128, seed: int = 
     bpy.ops.wm.read_factory_settings(use_empty=True)
     scene = bpy.context.scene
     BUILDERS[scene_name](bpy, scene)
-    # docs/DENOISE.md's Blender 4.x recipe.
-    scene.render.engine = "CYCLES"
-    scene.render.image_settings.file_format = "OPEN_EXR_MULTILAYER"
-    scene.render.image_settings.color_depth = "32"
-    scene.view_layers[0].cycles.denoising_store_passes = True
-    scene.cycles.use_denoising = blender_denoise
-    scene.render.filepath = out
-    # This test's own settings: small, deterministic, one thread on the CPU.
-    scene.cycles.device = "CPU"
-    scene.cycles.samples = spp
-    scene.cycles.use_adaptive_sampling = False
-    scene.cycles.seed = seed
-    scene.cycles.max_bounces = 8
-    scene.cycles.transmission_bounces = 8
-    scene.cycles.caustics_reflective = True
-    scene.cycles.caustics_refractive = True
-    scene.cycles.sample_clamp_direct = 0.0
-    scene.cycles.sample_clamp_indirect = 0.0
-    scene.cycles.denoising_use_gpu = False
-    scene.render.threads_mode = "FIXED"
-    scene.render.threads = 1
-    scene.render.resolution_x = scene.render.resolution_y = size
-    scene.render.resolution_percentage = 100
-    scene.render.film_transparent = False
-    if light_passes:  # docs/DENOISE.md: the passes kpcn's diffuse/specular split is made from
-        layer = scene.view_layers[0]
-        for kind in ("diffuse", "glossy", "transmission"):
-            for part in ("direct", "indirect", "color"):
-                setattr(layer, f"use_pass_{kind}_{part}", True)
-        layer.use_pass_emit = layer.use_pass_environment = True
+    # docs/DENOISE.md's Blender 4.x recipe, and this test's own settings: small, deterministic, one
+    # CPU thread (the settings the Cycles training data is rendered with, too).
+    apply_recipe(scene, out, spp=spp, size=size, seed=seed, threads=1, blender_denoise=blender_denoise,
+                 light_passes=light_passes)
     if half:
         scene.render.image_settings.color_depth = "16"
     if border is not None:

@@ -84,7 +84,7 @@ def _scene_code(scene: str) -> str:
         import blender_scenes as bs  # no bpy at import
     finally:
         sys.path.remove(str(HERE))
-    parts = [bs.BUILDERS[scene], bs.render, bs._material, bs._checker, bs._add, bs._camera, bs._world]
+    parts = [bs.BUILDERS[scene], bs.render, bs.apply_recipe, bs._material, bs._checker, bs._add, bs._camera, bs._world]
     return hashlib.sha256("".join(inspect.getsource(f) for f in parts).encode()).hexdigest()[:10]
 
 

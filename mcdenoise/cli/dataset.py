@@ -17,35 +17,11 @@ seed), and a rerun must use the same one.
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 from pathlib import Path
 
 from mcdenoise.errors import SceneError
-
-
-def parse_shard(text: str) -> tuple[int, int]:
-    """``"2/8"`` -> (2, 8), checked: 0 <= i < n."""
-    i, sep, n = text.partition("/")
-    try:
-        if not sep:
-            raise ValueError
-        a, b = int(i), int(n)
-    except ValueError:
-        raise SceneError(f"--shard {text!r}: expected i/n, e.g. 0/4") from None
-    if b < 1 or not 0 <= a < b:
-        raise SceneError(f"--shard {text!r}: need 0 <= i < n")
-    return a, b
-
-
-def parse_split(text: str) -> tuple[float, float, float]:
-    try:
-        parts = tuple(float(x) for x in text.split(","))
-    except ValueError:
-        parts = ()
-    if len(parts) != 3 or not all(math.isfinite(x) for x in parts) or min(parts) < 0 or sum(parts) <= 0:
-        raise SceneError(f"--split {text!r}: expected three non-negative fractions train,val,test, e.g. 0.8,0.1,0.1")
-    return parts  # type: ignore[return-value]
+from mcdenoise.render.dataset_config import parse_shard, parse_split
 
 
 def parse_objects(text: str) -> tuple[int, int]:

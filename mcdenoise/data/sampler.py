@@ -82,6 +82,14 @@ def _unit_mean(x: np.ndarray) -> np.ndarray:
     return x / m if m > 0 else np.zeros_like(x)
 
 
+def _local_variance(x: np.ndarray) -> np.ndarray:
+    """Variance of ``x`` (H, W) over each pixel's 3x3 neighbourhood (edge-replicated), float64."""
+    p = np.pad(x, 1, mode="edge")
+    h, w = x.shape
+    win = np.stack([p[dy:dy + h, dx:dx + w] for dy in range(3) for dx in range(3)])
+    return win.var(axis=0)
+
+
 def importance_map(noisy: dict[str, np.ndarray], reference: dict[str, np.ndarray] | None) -> np.ndarray:
     """Per-pixel crop importance ``(H, W)`` float64, >= 0 (KPCN Sec. 5.1).
 
@@ -94,13 +102,16 @@ def importance_map(noisy: dict[str, np.ndarray], reference: dict[str, np.ndarray
       noisy ``albedo`` (texture), which carries little Monte Carlo noise.
 
     Args:
-        noisy: per-pixel buffers ``(C, H, W)`` as in ``noisy.exr``; needs ``radiance`` and
-            ``radiance_variance``.
+        noisy: per-pixel buffers ``(C, H, W)`` as in ``noisy.exr``; needs ``radiance``, and uses
+            ``radiance_variance`` where there is one (else the 3x3 variance of the luminance).
         reference: reference buffers or None.
     """
     rad = noisy["radiance"].astype(np.float64)
     lum = luminance(rad, 0)
-    var = luminance(noisy["radiance_variance"].astype(np.float64), 0)
+    if "radiance_variance" in noisy:
+        var = luminance(noisy["radiance_variance"].astype(np.float64), 0)
+    else:  # pixel-only input: the luminance's variance over its 3x3 neighbourhood stands in
+        var = _local_variance(lum)
     score = _unit_mean(var / (lum * lum + 1e-2))
     if "normal" in noisy:
         geo = _grad_mag(noisy["normal"].astype(np.float64))
@@ -224,9 +235,9 @@ class CropSampler:
         sc = self._scores.get(im.path)
         if sc is None:
             px = self._pixels(im)
-            want = [n for n in ("radiance", "radiance_variance", "normal", "normal_variance", "albedo")
-                    if base_name(n) in im.meta.channels]
-            noisy = px.read_noisy(want)
+            # Every layer there is: a pixel-only image (a converted Cycles file) may have no variances.
+            noisy = {n: a for n, a in px.read_noisy().items()
+                     if n in ("radiance", "radiance_variance", "normal", "normal_variance", "albedo")}
             ref = px.read_reference(["radiance"]) if im.has_reference else None
             sc = window_scores(importance_map(noisy, ref), self.crop).astype(np.float32)
             self._scores[im.path] = sc

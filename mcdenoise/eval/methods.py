@@ -35,6 +35,9 @@ class Inputs:
         self.folder, self.k = folder, k
         have = set(folder.meta.channels)
         names = [c for c in GUIDES if c.removesuffix("_variance") in have]
+        if folder.samples is None:  # pixel-only: what noisy.exr holds (a converted Cycles file has no variance)
+            held = set(folder.read_noisy())
+            names = [c for c in names if c in held]
         self.guides: dict[str, np.ndarray] = input_arrays(folder, names, "pixels", spp=k)
         self._cache: dict[tuple[str, tuple[str, ...]], dict[str, np.ndarray]] = {}
 

@@ -22,6 +22,8 @@ from mcdenoise.errors import FormatError, SceneError
 from mcdenoise.io.safety import atomic_file
 
 __all__ = [
+    "parse_shard",
+    "parse_split",
     "DatasetConfig",
     "CONFIG_FILE",
     "GENERATOR",
@@ -224,3 +226,27 @@ def _write_config(root: Path, cfg: DatasetConfig) -> None:
     root.mkdir(parents=True, exist_ok=True)
     with atomic_file(root / CONFIG_FILE) as tmp:
         tmp.write_text(json.dumps(cfg.to_json(), indent=1) + "\n")
+
+
+def parse_shard(text: str) -> tuple[int, int]:
+    """``"2/8"`` -> (2, 8), checked: 0 <= i < n."""
+    i, sep, n = text.partition("/")
+    try:
+        if not sep:
+            raise ValueError
+        a, b = int(i), int(n)
+    except ValueError:
+        raise SceneError(f"--shard {text!r}: expected i/n, e.g. 0/4") from None
+    if b < 1 or not 0 <= a < b:
+        raise SceneError(f"--shard {text!r}: need 0 <= i < n")
+    return a, b
+
+
+def parse_split(text: str) -> tuple[float, float, float]:
+    try:
+        parts = tuple(float(x) for x in text.split(","))
+    except ValueError:
+        parts = ()
+    if len(parts) != 3 or not all(math.isfinite(x) for x in parts) or min(parts) < 0 or sum(parts) <= 0:
+        raise SceneError(f"--split {text!r}: expected three non-negative fractions train,val,test, e.g. 0.8,0.1,0.1")
+    return parts  # type: ignore[return-value]

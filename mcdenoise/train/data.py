@@ -299,6 +299,8 @@ def validation_batches(
         crop = Crop(inputs, ref, m.scene_feature_vector(), im.path, (0, 0), idx)
         batch = _stack([crop], [hi], model.input_kind, targets)
         # The noisy input's own image, so that validation can print the baseline beside the model.
-        batch["noisy"] = torch.from_numpy(im.samples.read(["radiance"], samples=idx)["radiance"].mean(axis=0))[None].float()
+        noisy = (im.read_noisy(["radiance"])["radiance"] if im.samples is None  # a pixel-only image (no samples.bin)
+                 else im.samples.read(["radiance"], samples=idx)["radiance"].mean(axis=0))
+        batch["noisy"] = torch.from_numpy(noisy)[None].float()
         out.append(batch)
     return out
