@@ -27,10 +27,23 @@ is shared), so a file is the same on any machine with the same Blender up to Cyc
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import math
 import sys
+from pathlib import Path
 
-from mcdenoise.render.cycles.recipe import apply_recipe
+
+def _load_recipe():
+    """``mcdenoise.render.cycles.recipe`` by its file: a Blender Python (bpy 5.x needs 3.13) need
+    not have mcdenoise's dependencies, which importing the package would pull in."""
+    path = Path(__file__).resolve().parents[1] / "mcdenoise" / "render" / "cycles" / "recipe.py"
+    spec = importlib.util.spec_from_file_location("_mcdenoise_cycles_recipe", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+apply_recipe = _load_recipe().apply_recipe
 
 SCENES = ("room", "dof", "glass")
 
@@ -178,15 +191,13 @@ def render(scene_name: str, out: str, *, spp: int, size: int = 128, seed: int = 
     BUILDERS[scene_name](bpy, scene)
     # docs/DENOISE.md's Blender 4.x recipe, and this test's own settings: small, deterministic, one
     # CPU thread (the settings the Cycles training data is rendered with, too).
-    apply_recipe(scene, out, spp=spp, size=size, seed=seed, threads=1, blender_denoise=blender_denoise,
-                 light_passes=light_passes)
-    if half:
-        scene.render.image_settings.color_depth = "16"
+    write_still = apply_recipe(scene, out, spp=spp, size=size, seed=seed, threads=1,
+                               blender_denoise=blender_denoise, light_passes=light_passes, half=half)
     if border is not None:
         scene.render.use_border = scene.render.use_crop_to_border = True
         (scene.render.border_min_x, scene.render.border_max_x,
          scene.render.border_min_y, scene.render.border_max_y) = border
-    bpy.ops.render.render(write_still=True)
+    bpy.ops.render.render(write_still=write_still)
 
 
 def read_pass(src: str, name: str, out: str, size: tuple[int, int]) -> list[str]:
@@ -202,18 +213,39 @@ def read_pass(src: str, name: str, out: str, size: tuple[int, int]) -> list[str]
     bpy.ops.object.camera_add()
     scene.camera = bpy.context.object
     scene.render.engine = "BLENDER_WORKBENCH"
-    scene.use_nodes = True
-    tree = scene.node_tree
-    for node in list(tree.nodes):
-        tree.nodes.remove(node)
+    blender5 = bpy.app.version >= (5, 0, 0)
+    if blender5:  # the compositor is a node group of its own; File Output writes the pass
+        tree = bpy.data.node_groups.new("read", "CompositorNodeTree")
+        scene.compositing_node_group = tree
+        scene.render.compositor_device = "CPU"
+    else:
+        scene.use_nodes = True
+        tree = scene.node_tree
+        for node in list(tree.nodes):
+            tree.nodes.remove(node)
     node = tree.nodes.new("CompositorNodeImage")
     node.image = image
     passes = [o.name for o in node.outputs]
     print("passes: " + ";".join(passes), flush=True)
-    tree.links.new(node.outputs[name], tree.nodes.new("CompositorNodeComposite").inputs["Image"])
     scene.render.resolution_x, scene.render.resolution_y = size
     scene.render.resolution_percentage = 100
     scene.view_settings.view_transform = "Standard"
+    if blender5:
+        fo = tree.nodes.new("CompositorNodeOutputFile")
+        fo.format.media_type = "IMAGE"
+        fo.format.file_format = "OPEN_EXR"
+        fo.format.color_depth = "32"
+        fo.format.color_management = "OVERRIDE"
+        fo.format.view_settings.view_transform = "Standard"
+        stem = str(Path(out).with_suffix(""))
+        fo.directory, fo.file_name = str(Path(stem).parent) + "/", Path(stem).name
+        fo.file_output_items.clear()
+        fo.file_output_items.new("RGBA", "Image")
+        tree.links.new(node.outputs[name], fo.inputs["Image"])
+        bpy.ops.render.render(write_still=False)
+        Path(f"{stem}Image.exr").replace(out)  # the node appends its input's name in this mode
+        return passes
+    tree.links.new(node.outputs[name], tree.nodes.new("CompositorNodeComposite").inputs["Image"])
     scene.render.image_settings.file_format = "OPEN_EXR"
     scene.render.image_settings.color_depth = "32"
     scene.render.filepath = out

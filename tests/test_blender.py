@@ -200,7 +200,10 @@ def test_is_cycles_and_colour_layer():
     """The detection the reader and writer share: a view-layer prefix and a Cycles pass."""
     assert blender.is_cycles(["ViewLayer.Combined.R", "ViewLayer.Combined.A"])
     assert blender.is_cycles(["RenderLayer.Denoising Albedo.R"])
-    assert not blender.is_cycles(["R", "G", "B", "albedo.R", "Combined.R"])
+    assert not blender.is_cycles(["R", "G", "B", "albedo.R", "normal.X"])
+    # Blender 5's File Output node writes passes without a view-layer prefix.
+    assert blender.is_cycles(["Combined.R", "Denoising Albedo.R"])
+    assert blender.colour_layer(["Combined.R", "Noisy Image.R"]) == ("", "Noisy Image")
     assert blender.colour_layer(["V.Combined.R", "V.Noisy Image.R"]) == ("V.", "Noisy Image")
     assert blender.colour_layer(["V.Combined.R"]) == ("V.", "Combined")
     assert blender.colour_layer(["R"]) is None
@@ -391,3 +394,58 @@ def test_kpcn_pixel_runs_on_blender_passes_and_kpcn_refusal_says_how(tmp_path, c
     rc = main(["denoise", str(src), "-o", str(tmp_path / "o2.exr"), "--model", str(small)])
     err = [ln for ln in capfd.readouterr().err.splitlines() if ln.strip()]
     assert rc != 0 and len(err) == 1 and "diffuse_variance" in err[0] and "kpcn-pixel" in err[0], err
+
+
+def blender5_exr(path) -> dict[str, np.ndarray]:
+    """Write what Blender 5's File Output node writes in multi-layer mode with docs/DENOISE.md's
+    names: one part per pass, no view-layer prefix, a value pass's channel named V. Returns the
+    channels of the Blender 4-like file the same pixels come from (:func:`blender_exr`)."""
+    src = blender_exr(path.with_name("b4.exr"))
+    parts = {}
+    for name, arr in src.items():
+        layer, _, comp = name.rpartition(".")
+        pass_name = layer.split(".", 1)[1]
+        if pass_name in ("Normal", "Depth", "IndexOB"):
+            continue
+        comp = "V" if pass_name == "Denoising Depth" else comp
+        parts.setdefault(pass_name, {})[f"{pass_name}.{comp}"] = arr
+    f = OpenEXR.File([OpenEXR.Part({"compression": OpenEXR.ZIP_COMPRESSION, **{k: v for k, v in HEADER.items() if k != "compression"}},
+                                   ch, name=pass_name) for pass_name, ch in parts.items()])
+    f.write(str(path))
+    return src
+
+
+def test_blender5_multipart_file(tmp_path, wskp, capfd):
+    """Catches a reader that sees only the first part of a multi-part EXR or needs a view-layer
+    prefix (Blender 5's recipe, docs/DENOISE.md: passes routed through a File Output node, written
+    one part per pass without a prefix; before, such a file was read as its first pass alone and
+    written back as bare R, G, B): the same pixels as the Blender 4 file, and an output with every
+    input channel plus the Denoised pass."""
+    src = blender5_exr(tmp_path / "b5.exr")
+    a, b = from_exr(tmp_path / "b5.exr").pixels, from_exr(tmp_path / "b4.exr").pixels
+    assert sorted(a) == sorted(b) and {"radiance", "albedo", "normal", "depth"} <= set(a)
+    for k in a:
+        assert np.array_equal(a[k], b[k]), k
+    assert main(["denoise", str(tmp_path / "b5.exr"), "-o", str(tmp_path / "out.exr"), "--model", wskp]) == 0
+    capfd.readouterr()
+    _, got = read_exr_file(tmp_path / "out.exr")
+    _, inp = read_exr_file(tmp_path / "b5.exr")
+    _assert_kept(inp, got)
+    assert set(got) - set(inp) == {f"Denoised.{c}" for c in "RGBA"}
+    assert main(["denoise", str(tmp_path / "b4.exr"), "-o", str(tmp_path / "out4.exr"), "--model", wskp]) == 0
+    capfd.readouterr()
+    _, got4 = read_exr_file(tmp_path / "out4.exr")
+    for c in "RGBA":
+        assert np.array_equal(got[f"Denoised.{c}"], got4[f"ViewLayer.Denoised.{c}"]), c
+    assert np.array_equal(got["Noisy Image.R"], src["ViewLayer.Noisy Image.R"])
+
+
+def test_multipart_channel_in_two_parts_is_refused(tmp_path):
+    """Catches a merge of parts that silently keeps one of two channels with the same name."""
+    from mcdenoise.errors import FormatError
+
+    px = np.ones((4, 4), np.float32)
+    OpenEXR.File([OpenEXR.Part({}, {"A.R": px}, name="one"), OpenEXR.Part({}, {"A.R": px * 2}, name="two")]).write(
+        str(tmp_path / "dup.exr"))
+    with pytest.raises(FormatError, match="two parts"):
+        read_exr_file(tmp_path / "dup.exr")

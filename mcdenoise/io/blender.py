@@ -74,15 +74,23 @@ def _pass_of(channel: str) -> tuple[str, str, str]:
     return (prefix + "." if prefix else ""), name, comp
 
 
+def _prefix_of(layer: str) -> str:
+    """The view-layer prefix of a layer name's part before its pass: ``"ViewLayer"`` ->
+    ``"ViewLayer."``, ``""`` (a pass without one, as Blender 5's File Output writes) -> ``""``."""
+    return f"{layer}." if layer else ""
+
+
 def is_cycles(channel_names: list[str]) -> bool:
-    """Does the channel list look like a Cycles multi-layer EXR (a view-layer prefix and a Cycles
-    colour or denoising pass)?"""
-    return any(prefix and name in CYCLES_PASSES for prefix, name, _ in map(_pass_of, channel_names))
+    """Does the channel list look like a Cycles multi-layer EXR (a Cycles colour or denoising
+    pass, under a view-layer prefix as Blender 4 writes a render, or without one as Blender 5's
+    File Output node writes its inputs)?"""
+    return any(name in CYCLES_PASSES for _, name, _ in map(_pass_of, channel_names))
 
 
 def view_layers(channel_names: list[str]) -> list[str]:
-    """The view-layer prefixes (``"ViewLayer."``) that hold a Cycles pass, in name order."""
-    return sorted({prefix for prefix, name, _ in map(_pass_of, channel_names) if prefix and name in CYCLES_PASSES})
+    """The view-layer prefixes (``"ViewLayer."``; ``""`` for passes without one) that hold a Cycles
+    pass, in name order."""
+    return sorted({prefix for prefix, name, _ in map(_pass_of, channel_names) if name in CYCLES_PASSES})
 
 
 #: What a view layer needs to be read, most important first (a layer is scored by how many it has).
@@ -100,7 +108,7 @@ def view_layer(channel_names: list[str]) -> str | None:
     layers that may show different objects. None when no layer has a colour pass."""
     passes: dict[str, set[str]] = {}
     for prefix, name, _ in map(_pass_of, channel_names):
-        if prefix:
+        if name:
             passes.setdefault(prefix, set()).add(name)
     candidates = [p for p in sorted(passes) if passes[p] & {"Noisy Image", "Combined"}]
     if not candidates:
@@ -124,7 +132,7 @@ def colour_fallback(layers: dict[str, np.ndarray], path: Path, prefix: str | Non
     layer to take it from (:func:`view_layer`); None takes the first."""
     for name, arr in layers.items():
         layer, _, pass_name = name.rpartition(".")
-        if pass_name == "Combined" and arr.shape[0] >= 3 and (prefix is None or f"{layer}." == prefix):
+        if pass_name == "Combined" and arr.shape[0] >= 3 and (prefix is None or _prefix_of(layer) == prefix):
             warnings.warn(f"{path}: no 'Noisy Image' pass (Blender's denoiser was off): denoising '{name}'",
                           BlenderNote, stacklevel=2)
             return arr[:3]
@@ -161,7 +169,7 @@ def light_split(layers: dict[str, np.ndarray], radiance: np.ndarray, prefix: str
     found: dict[str, np.ndarray] = {}
     for name, arr in layers.items():
         layer, _, pass_name = name.rpartition(".")
-        if pass_name in DIFFUSE_PASSES and arr.shape[0] >= 3 and (prefix is None or f"{layer}." == prefix):
+        if pass_name in DIFFUSE_PASSES and arr.shape[0] >= 3 and (prefix is None or _prefix_of(layer) == prefix):
             found.setdefault(pass_name, arr[:3].astype(np.float32))
     if len(found) < len(DIFFUSE_PASSES):
         return None

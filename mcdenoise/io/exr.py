@@ -67,41 +67,64 @@ def _captured_stderr() -> Iterator[list[str]]:
             lines.extend(ln for ln in text.splitlines() if ln.strip())
 
 
-def _open_exr(path: Path, *, header_only: bool = False) -> Any:
+def _open_parts(path: Path, *, header_only: bool = False) -> list[Any]:
+    """Every part of the file (a multi-part file, as Blender 5's File Output node writes one pass
+    per part, has several), each checked for missing pixel data."""
     import OpenEXR
 
     if not path.is_file():
         raise FormatError(path, "no such file")
     problem = None
+    parts: list[Any] = []
     with _captured_stderr() as lib_lines:
         try:
             f = OpenEXR.File(str(path), separate_channels=True, header_only=header_only)
-            part = f.parts[0]
+            parts = list(f.parts)
+            if not parts:
+                raise IndexError("no parts")
             if not header_only:
-                declared = {c.name for c in part.header["channels"]}
-                if set(part.channels) != declared:
-                    problem = "pixel data missing (truncated or corrupt)"
+                for part in parts:
+                    declared = {c.name for c in part.header["channels"]}
+                    if set(part.channels) != declared:
+                        problem = "pixel data missing (truncated or corrupt)"
         except (RuntimeError, IndexError, ValueError) as exc:
             problem = str(exc) or type(exc).__name__
-            part = None
-    if problem is not None or part is None:
+            parts = []
+    if problem is not None or not parts:
         detail = next((ln for ln in lib_lines if "EXR_ERR" in ln), lib_lines[0] if lib_lines else problem)
         # The library's message starts with the path again: keep only what follows it.
         detail = (detail or "").split(": ", 1)[-1] if detail and detail.startswith(str(path)) else detail
         raise FormatError(path, f"not a readable OpenEXR file (truncated or corrupt): {detail}")
-    return part
+    if len({tuple(np.asarray(w).ravel()) for w in (p.header.get("dataWindow") for p in parts) if w is not None}) > 1:
+        raise FormatError(path, "its parts have different data windows (sizes); only one image per file is read")
+    return parts
+
+
+def _merged_channels(path: Path, parts: list[Any]) -> dict[str, Any]:
+    """Channel name -> channel over every part; a name in two parts is refused."""
+    out: dict[str, Any] = {}
+    for part in parts:
+        for name, ch in part.channels.items():
+            if name in out:
+                raise FormatError(path, f"channel {name!r} is in two parts of the file")
+            out[name] = ch
+    return out
 
 
 def read_exr_header(path: str | os.PathLike) -> dict[str, Any]:
-    """The header attributes of the first part (``channels``, ``dataWindow``, custom ones...)."""
-    return dict(_open_exr(Path(path), header_only=True).header)
+    """The header attributes of the first part (``channels``, ``dataWindow``, custom ones...);
+    ``channels`` lists the channels of every part."""
+    parts = _open_parts(Path(path), header_only=True)
+    head = dict(parts[0].header)
+    head["channels"] = [c for p in parts for c in p.header["channels"]]
+    return head
 
 
 def read_exr_raw(path: str | os.PathLike) -> dict[str, np.ndarray]:
-    """EXR channel name -> ``(H, W)`` array; half and float become float32, uint stays uint32."""
-    part = _open_exr(Path(path))
+    """EXR channel name -> ``(H, W)`` array (of every part); half and float become float32, uint
+    stays uint32."""
     out: dict[str, np.ndarray] = {}
-    for name, ch in part.channels.items():
+    for name, ch in _merged_channels(Path(path), _open_parts(Path(path))).items():
         px = np.asarray(ch.pixels)
         if px.ndim != 2:
             raise FormatError(path, f"channel {name!r} has shape {px.shape}, expected (H, W)")
@@ -110,10 +133,12 @@ def read_exr_raw(path: str | os.PathLike) -> dict[str, np.ndarray]:
 
 
 def read_exr_file(path: str | os.PathLike) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
-    """The header attributes and EXR channel name -> ``(H, W)`` array in its stored pixel type
-    (float16, float32, uint32): a file read to be written back unchanged (:func:`write_exr_file`)."""
-    part = _open_exr(Path(path))
-    return dict(part.header), {name: np.asarray(ch.pixels) for name, ch in part.channels.items()}
+    """The header attributes (the first part's) and EXR channel name -> ``(H, W)`` array of every
+    part in its stored pixel type (float16, float32, uint32): a file read to be written back
+    unchanged (:func:`write_exr_file`; a multi-part file comes back as one part with every channel)."""
+    parts = _open_parts(Path(path))
+    head = {k: v for k, v in parts[0].header.items() if not (len(parts) > 1 and k in ("name", "type", "chunkCount"))}
+    return head, {name: np.asarray(ch.pixels) for name, ch in _merged_channels(Path(path), parts).items()}
 
 
 def write_exr_file(path: str | os.PathLike, channels: dict[str, np.ndarray], header: dict[str, Any]) -> Path:

@@ -83,7 +83,8 @@ RENAMES: tuple[Rename, ...] = (
     Rename("cycles", "Noisy Image", "radiance", _RGB),
     Rename("cycles", "Denoising Albedo", "albedo", _RGB),
     Rename("cycles", "Denoising Normal", "normal", _XYZ),
-    Rename("cycles", "Denoising Depth", "depth", (("Z", "Y"),)),
+    # A render writes depth's one channel as Z; Blender 5's File Output node writes a value as V.
+    Rename("cycles", "Denoising Depth", "depth", (("Z", "Y"), ("V", "Y"))),
     # Mitsuba 3 aov integrator (names from its documentation).
     Rename("mitsuba", "", "radiance", _RGB),
     Rename("mitsuba", "dd.y", "depth", (("T", "Y"),)),

@@ -50,9 +50,9 @@ def main(argv: list[str] | None = None) -> int:
             continue
         scene = build_scene(bpy, desc)
         tmp = path.with_name(f".{path.stem}.{os.getpid()}.exr")
-        apply_recipe(scene, str(tmp), spp=spp, size=a.size, seed=render_seed(a.seed, a.index, spp, ref),
-                     threads=a.threads, light_passes=True)
-        bpy.ops.render.render(write_still=True)
+        write_still = apply_recipe(scene, str(tmp), spp=spp, size=a.size, seed=render_seed(a.seed, a.index, spp, ref),
+                                   threads=a.threads, light_passes=True)
+        bpy.ops.render.render(write_still=write_still)
         tmp.replace(path)
     return 0
 
