@@ -148,7 +148,7 @@ def _lights(bpy: Any, lights: list[dict[str, Any]]) -> None:
         obj.data.energy = li["energy"]
         if li["type"] == "AREA":
             obj.data.size = li["size"]
-            obj.rotation_euler = (math.pi, 0, 0)  # facing down from the ceiling
+            obj.rotation_euler = (0, 0, 0)  # an area light shines along its -z: down from the ceiling
         else:
             obj.data.shadow_soft_size = li["radius"]
         if li["type"] == "SPOT":
