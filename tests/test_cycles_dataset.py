@@ -125,3 +125,43 @@ def test_the_dataset_command_renders_and_resumes(tmp_path):
     assert again.returncode == 0 and "rendered 0 scene(s)" in again.stdout
     other = subprocess.run(cmd[:-2] + ["--split", "0.5,0.5,0"], capture_output=True, text=True, timeout=600)
     assert other.returncode == 1 and "other settings" in other.stderr
+
+
+def test_pixel_model_trains_on_per_sample_and_pixel_only_images_together(tmp_path):
+    """Catches the refusals that stopped the first Cycles training run (a pixel-only image failed
+    the ``spp_range`` checks of the crop sampler, and the OIDN precompute read samples it does not
+    have): a combiner's batches draw from both kinds, the pixel-only image at its own spp, and its
+    crop is exactly its stored noisy.exr."""
+    import sys
+
+    sys.path.insert(0, str(__import__("pathlib").Path(__file__).parent))
+    from test_train_data import _dataset
+
+    from mcdenoise.eval.oidn import oidn_available
+    from mcdenoise.models.registry import build_model
+    from mcdenoise.train.data import DataConfig, batch_source, precompute_oidn
+
+    if not oidn_available():
+        pytest.skip("pyoidn missing")
+    per_sample = _dataset(tmp_path / "smp")
+    pixel = tmp_path / "px"
+    _pixel_dataset(pixel)
+    for e in (m := json.loads((pixel / "manifest.json").read_text()))["images"]:
+        e["split"] = "train"
+    write_manifest(pixel, m["images"])
+    model = build_model("combine", "small")
+    cfg = DataConfig(crop=8, batch=4, workers=0, spp_range=(2, 4))
+    src = batch_source(f"{per_sample},{pixel}", model, cfg)
+    precompute_oidn(src.sampler.images, cfg, ["oidn"])  # refused a pixel-only image before
+    kinds = Counter(im.samples is None for im in src.sampler.images)
+    assert kinds[True] == 3 and kinds[False] >= 1
+    seen_pixel_only = 0
+    for i in range(30):
+        c = src.sampler.draw(np.random.default_rng(i))
+        im = next(x for x in src.sampler.images if x.path == c.path)
+        if im.samples is None:
+            seen_pixel_only += 1
+            y, x = c.origin
+            want = im.read_noisy(["radiance"], crop=(y, x, 8, 8))["radiance"]
+            assert np.array_equal(c.inputs["radiance"], want)
+    assert seen_pixel_only > 0

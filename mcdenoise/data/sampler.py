@@ -193,7 +193,9 @@ class CropSampler:
         self._scores: dict[Path, np.ndarray] = {}
         self._caps: dict[Path, float] = {}
         noisy_target = target == "noisy"
-        needs_samples = kind == "samples" or spp_range is not None or noisy_target
+        # A pixel-only image (no samples.bin: a converted Cycles or pbrt render) gives a pixel
+        # model its stored noisy.exr at its own spp, whatever ``spp_range`` says.
+        needs_samples = kind == "samples" or noisy_target
         for im in self.images:
             m = im.meta
             if m.height < crop or m.width < crop:
@@ -202,7 +204,8 @@ class CropSampler:
                 raise ValueError(f"{im.path}: no reference.exr to train against")
             if needs_samples and im.samples is None:
                 raise ValueError(f"{im.path}: no per-sample data (needed for kind={kind!r}, spp_range={spp_range}, target={target!r})")
-            if spp_range is not None and not 1 <= spp_range[0] <= spp_range[1] <= m.spp:
+            if (spp_range is not None and im.samples is not None
+                    and not 1 <= spp_range[0] <= spp_range[1] <= m.spp):
                 raise ValueError(f"{im.path}: spp_range {spp_range} outside 1..{m.spp}")
             if noisy_target:
                 hi = spp_range[1] if spp_range is not None else m.spp // 2
@@ -269,7 +272,8 @@ class CropSampler:
 
         ``spp`` fixes the number of input samples (needs per-sample data) instead of drawing it
         from ``spp_range``: the training loop draws one count per batch so that every row of a
-        sample model's batch has the same ``S``.
+        sample model's batch has the same ``S``. A pixel-only image ignores both: its input is its
+        stored noisy.exr, at the spp it was rendered with.
         """
         im = self.images[int(rng.integers(len(self.images)))]
         m = im.meta
@@ -277,8 +281,8 @@ class CropSampler:
         box = (y0, x0, self.crop, self.crop)
         idx: list[int] | None = None
         held: list[int] | None = None
-        n = spp
-        if n is None and self.spp_range is not None:
+        n = spp if im.samples is not None else None
+        if n is None and self.spp_range is not None and im.samples is not None:
             n = int(rng.integers(self.spp_range[0], self.spp_range[1] + 1))
         if self.target == "noisy":
             n = m.spp // 2 if n is None else n

@@ -93,10 +93,12 @@ def _input_channels(model: torch.nn.Module) -> list[str]:
 
 
 def _cap_spp(cfg: DataConfig, images: list[ImageFolder]) -> tuple[int, int] | None:
-    """``cfg.spp_range`` limited to what every image can give (a noisy target keeps half)."""
+    """``cfg.spp_range`` limited to what every image with per-sample data can give (a noisy target
+    keeps half); a pixel-only image is read at its own spp and limits nothing."""
     if cfg.spp_range is None:
         return None
-    top = min(im.meta.spp for im in images)
+    with_samples = [im for im in images if im.samples is not None] or images
+    top = min(im.meta.spp for im in with_samples)
     if cfg.target == "noisy":
         top = max(1, top // 2)
     lo, hi = cfg.spp_range
@@ -250,7 +252,9 @@ def precompute_oidn(images: list, cfg: DataConfig, channels: list[str] | None = 
     todo = []
     for im in images:
         m = im.meta
-        if cfg.spp_range is not None:
+        if im.samples is None:  # pixel-only: its own spp, nothing else
+            counts = [None]
+        elif cfg.spp_range is not None:
             counts = range(cfg.spp_range[0], min(cfg.spp_range[1], m.spp - (cfg.target == "noisy")) + 1)
         else:
             counts = [m.spp // 2] if cfg.target == "noisy" else [None]
