@@ -53,6 +53,10 @@ def dataset_command(data_dir: str | Path) -> str:
         d = json.loads(p.read_text())
     except (OSError, ValueError) as e:
         raise WeightsError(f"{p}: cannot read the dataset's settings ({e})") from None
+    if d.get("format") == "mcdenoise-cycles-dataset":
+        from mcdenoise.render.cycles.dataset import recipe_command
+
+        return recipe_command(data_dir, d)
     size = d["width"] if d["width"] == d["height"] else f"{d['width']}x{d['height']}"
     args = ["mcdenoise", "dataset", "--out", str(data_dir), "--count", str(d["count"]), "--spp", str(d["spp"]),
             "--ref-spp", str(d["ref_spp"]), "--size", str(size), "--seed", str(d["seed"])]

@@ -31,7 +31,7 @@ from mcdenoise.errors import McDenoiseError
 from mcdenoise.io.atomic import atomic_file
 from mcdenoise.render.dataset_config import parse_shard, parse_split
 
-__all__ = ["CONFIG_FORMAT", "scene_name", "image_path", "render_cycles_dataset", "main"]
+__all__ = ["CONFIG_FORMAT", "scene_name", "image_path", "recipe_command", "render_cycles_dataset", "main"]
 
 CONFIG_FORMAT = "mcdenoise-cycles-dataset"
 CONFIG_FILE = "dataset.json"
@@ -57,6 +57,14 @@ def blender_version(python: str = sys.executable) -> str:
 def _config(args: argparse.Namespace, version: str) -> dict[str, Any]:
     return {"format": CONFIG_FORMAT, "version": 1, "seed": args.seed, "count": args.count, "spp": sorted(args.spp),
             "ref_spp": args.ref_spp, "size": args.size, "fractions": list(args.split), "blender": version}
+
+
+def recipe_command(root: str | Path, cfg: dict[str, Any]) -> str:
+    """The command that renders the dataset at ``root`` again, from its dataset.json ``cfg`` (which
+    also records the bpy version: the same version gives the same files)."""
+    split = ",".join(f"{f:g}" for f in cfg["fractions"])
+    return (f"python -m mcdenoise.render.cycles.dataset --out {root} --count {cfg['count']} --seed {cfg['seed']} "
+            f"--spp {' '.join(map(str, cfg['spp']))} --ref-spp {cfg['ref_spp']} --size {cfg['size']} --split {split}")
 
 
 def _check_config(root: Path, cfg: dict[str, Any]) -> None:
