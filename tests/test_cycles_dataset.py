@@ -165,3 +165,19 @@ def test_pixel_model_trains_on_per_sample_and_pixel_only_images_together(tmp_pat
             want = im.read_noisy(["radiance"], crop=(y, x, 8, 8))["radiance"]
             assert np.array_equal(c.inputs["radiance"], want)
     assert seen_pixel_only > 0
+
+
+def test_the_recipe_command_parses_back_to_the_settings():
+    """Catches a card that states a Cycles dataset command which renders other data than the
+    dataset it names (a dropped or misspelt setting: spp list, split, reference spp)."""
+    import shlex
+
+    from mcdenoise.render.cycles.dataset import parser, recipe_command
+
+    cfg = {"format": "mcdenoise-cycles-dataset", "version": 1, "seed": 301, "count": 48, "spp": [4, 8, 16],
+           "ref_spp": 256, "size": 128, "fractions": [0.85, 0.15, 0.0], "blender": "4.5.15 LTS"}
+    cmd = recipe_command("data/cycles_ref", cfg)
+    a = parser().parse_args(shlex.split(cmd)[3:])
+    assert (str(a.out), a.count, a.seed, a.spp, a.ref_spp, a.size, a.split) == \
+        ("data/cycles_ref", 48, 301, [4, 8, 16], 256, 128, (0.85, 0.15, 0.0))
+    assert "#" not in cmd and "&&" not in cmd  # cards join several dataset commands with " && "

@@ -31,7 +31,7 @@ from mcdenoise.errors import McDenoiseError
 from mcdenoise.io.atomic import atomic_file
 from mcdenoise.render.dataset_config import parse_shard, parse_split
 
-__all__ = ["CONFIG_FORMAT", "scene_name", "image_path", "recipe_command", "render_cycles_dataset", "main"]
+__all__ = ["CONFIG_FORMAT", "scene_name", "image_path", "recipe_command", "render_cycles_dataset", "parser", "main"]
 
 CONFIG_FORMAT = "mcdenoise-cycles-dataset"
 CONFIG_FILE = "dataset.json"
@@ -141,8 +141,9 @@ def render_cycles_dataset(args: argparse.Namespace, log=print) -> dict[str, Any]
     return {"rendered": rendered, "done": len(done), "seconds": time.perf_counter() - t0, "manifest": path}
 
 
-def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def parser() -> argparse.ArgumentParser:
+    """The command's arguments (also what a model card's dataset command parses back with)."""
+    p = argparse.ArgumentParser(prog="python -m mcdenoise.render.cycles.dataset", description=__doc__.splitlines()[0])
     p.add_argument("--out", type=Path, required=True, help="dataset folder (created; a rerun resumes it)")
     p.add_argument("--count", type=int, required=True, help="scenes")
     p.add_argument("--seed", type=int, default=0)
@@ -152,7 +153,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--threads", type=int, default=1, help="Cycles threads per render (the pixels do not depend on it)")
     p.add_argument("--split", type=parse_split, default=(0.85, 0.15, 0.0), help="train,val,test fractions of scenes")
     p.add_argument("--shard", type=parse_shard, default=(0, 1), help="render only scenes with index %% n == i")
-    args = p.parse_args(argv)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parser().parse_args(argv)
     try:
         summary = render_cycles_dataset(args, log=lambda s: print(s, file=sys.stderr, flush=True))
     except McDenoiseError as e:
