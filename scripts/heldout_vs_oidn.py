@@ -1,0 +1,45 @@
+"""Models against OIDN 2.5.1 high on our own held-out images: rich_val and the val splits of
+rich_ref 1-3 and of both Cycles sets (45 images per spp), never the third-party scenes.
+
+    .venv/bin/python scripts/heldout_vs_oidn.py MODEL [MODEL ...]
+
+Per spp (4, 8, 16; a pixel-only Cycles image counts at its own spp) and model: the mean,
+geometric mean, median and worst ratio of relMSE to OIDN high's on the same image, how many
+images it beats OIDN on and is within 5% of it, and the mean PSNR gain.
+"""
+import sys, numpy as np, warnings
+warnings.simplefilter("ignore")
+import mcdenoise
+from pathlib import Path
+from mcdenoise.data.dataset import Dataset
+from mcdenoise.data.image_folder import ImageFolder
+from mcdenoise.data.stats import pixel_stats
+from mcdenoise.eval.metrics import relmse, psnr
+from mcdenoise.eval.oidn import oidn_denoise
+models = sys.argv[1:]
+folders = []
+for root in ["data/rich_val", "data/rich_ref", "data/rich_ref2", "data/rich_ref3", "data/cycles_ref", "data/cycles_ref2"]:
+    root = Path(root)
+    if (root / "manifest.json").is_file():
+        folders += [im.path for im in Dataset(root).images("val") if im.has_reference]
+    else:
+        folders += sorted(m.parent for m in root.rglob("meta.json") if (m.parent / "reference.exr").is_file())
+for spp in (4, 8, 16):
+    R = {m: [] for m in models}; D = {m: [] for m in models}
+    for f in folders:
+        im = ImageFolder(f)
+        if im.samples is None:
+            if im.meta.spp != spp: continue
+            px = im.read_noisy(["radiance", "albedo", "normal"])
+        else:
+            smp = im.samples.read(["radiance", "albedo", "normal"], samples=list(range(spp)))
+            px = {k: v.mean(axis=0) for k, v in smp.items()}
+        ref = im.read_reference(["radiance"])["radiance"]
+        o = oidn_denoise(px["radiance"], px["albedo"], px["normal"], threads=2)
+        r0, p0 = relmse(o, ref), psnr(o, ref)
+        for m in models:
+            out = np.asarray(mcdenoise.denoise(px["radiance"], px["albedo"], px["normal"], model=m))
+            R[m].append(relmse(out, ref) / r0); D[m].append(psnr(out, ref) - p0)
+    for m in models:
+        r = np.array(R[m])
+        print(f"spp {spp:2d} {m[-32:]:<32} n={len(r)} mean {r.mean():.3f} geo {np.exp(np.log(r).mean()):.3f} median {np.median(r):.3f} worst {r.max():.3f} better {(r<1).sum()}/{len(r)} within5% {(r<=1.05).sum()} dPSNR {np.mean(D[m]):+.2f}", flush=True)
