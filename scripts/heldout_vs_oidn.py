@@ -1,25 +1,34 @@
 """Models against OIDN 2.5.1 high on our own held-out images: rich_val and the val splits of
 rich_ref 1-3 and of both Cycles sets (45 images per spp), never the third-party scenes.
 
-    .venv/bin/python scripts/heldout_vs_oidn.py MODEL [MODEL ...]
+    .venv/bin/python scripts/heldout_vs_oidn.py MODEL [MODEL ...] [--roots DATASET ...]
 
 Per spp (4, 8, 16; a pixel-only Cycles image counts at its own spp) and model: the mean,
 geometric mean, median and worst ratio of relMSE to OIDN high's on the same image, how many
 images it beats OIDN on and is within 5% of it, and the mean PSNR gain.
 """
-import sys, numpy as np, warnings
-warnings.simplefilter("ignore")
-import mcdenoise
+import argparse
+import warnings
 from pathlib import Path
+
+import numpy as np
+
+import mcdenoise
 from mcdenoise.data.dataset import Dataset
 from mcdenoise.data.image_folder import ImageFolder
-from mcdenoise.data.stats import pixel_stats
-from mcdenoise.eval.metrics import relmse, psnr
+from mcdenoise.eval.metrics import psnr, relmse
 from mcdenoise.eval.oidn import oidn_denoise
-models = sys.argv[1:]
+
+warnings.simplefilter("ignore")  # Blender-convention notes on every Cycles image
+ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+ap.add_argument("models", nargs="+")
+ap.add_argument("--roots", nargs="+", type=Path, help="datasets (their val split) or image folders; default: the six above",
+                default=[Path(p) for p in ("data/rich_val", "data/rich_ref", "data/rich_ref2", "data/rich_ref3",
+                                           "data/cycles_ref", "data/cycles_ref2")])
+args = ap.parse_args()
+models = args.models
 folders = []
-for root in ["data/rich_val", "data/rich_ref", "data/rich_ref2", "data/rich_ref3", "data/cycles_ref", "data/cycles_ref2"]:
-    root = Path(root)
+for root in args.roots:
     if (root / "manifest.json").is_file():
         folders += [im.path for im in Dataset(root).images("val") if im.has_reference]
     else:

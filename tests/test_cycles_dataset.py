@@ -71,7 +71,7 @@ def test_importance_without_variance():
     assert score[:, 17:].mean() > 3 * score[:, :15].mean()
 
 
-def _pixel_dataset(root, n=3):
+def _pixel_dataset(root, n=3, split="val"):
     rng = np.random.default_rng(1)
     entries = []
     for i in range(n):
@@ -80,7 +80,7 @@ def _pixel_dataset(root, n=3):
                  "albedo": np.clip(ref, 0, 1), "normal": np.zeros_like(ref) + np.float32([0, 0, 1])[:, None, None]}
         meta = ImageMeta(width=24, height=24, spp=4, channels=list(noisy), scene=f"s{i}", renderer="test")
         write_image(root / f"s{i}", meta=meta, noisy=noisy, reference={"radiance": ref})
-        entries.append({"path": f"s{i}", "scene": f"s{i}", "split": "val"})
+        entries.append({"path": f"s{i}", "scene": f"s{i}", "split": split})
     write_manifest(root, entries)
 
 
@@ -132,9 +132,6 @@ def test_pixel_model_trains_on_per_sample_and_pixel_only_images_together(tmp_pat
     the ``spp_range`` checks of the crop sampler, and the OIDN precompute read samples it does not
     have): a combiner's batches draw from both kinds, the pixel-only image at its own spp, and its
     crop is exactly its stored noisy.exr."""
-    import sys
-
-    sys.path.insert(0, str(__import__("pathlib").Path(__file__).parent))
     from test_train_data import _dataset
 
     from mcdenoise.eval.oidn import oidn_available
@@ -145,10 +142,7 @@ def test_pixel_model_trains_on_per_sample_and_pixel_only_images_together(tmp_pat
         pytest.skip("pyoidn missing")
     per_sample = _dataset(tmp_path / "smp")
     pixel = tmp_path / "px"
-    _pixel_dataset(pixel)
-    for e in (m := json.loads((pixel / "manifest.json").read_text()))["images"]:
-        e["split"] = "train"
-    write_manifest(pixel, m["images"])
+    _pixel_dataset(pixel, split="train")
     model = build_model("combine", "small")
     cfg = DataConfig(crop=8, batch=4, workers=0, spp_range=(2, 4))
     src = batch_source(f"{per_sample},{pixel}", model, cfg)

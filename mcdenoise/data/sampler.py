@@ -281,9 +281,11 @@ class CropSampler:
         box = (y0, x0, self.crop, self.crop)
         idx: list[int] | None = None
         held: list[int] | None = None
-        n = spp if im.samples is not None else None
-        if n is None and self.spp_range is not None and im.samples is not None:
-            n = int(rng.integers(self.spp_range[0], self.spp_range[1] + 1))
+        n = None  # a pixel-only image: its stored noisy.exr
+        if im.samples is not None:
+            n = spp
+            if n is None and self.spp_range is not None:
+                n = int(rng.integers(self.spp_range[0], self.spp_range[1] + 1))
         if self.target == "noisy":
             n = m.spp // 2 if n is None else n
             if not 1 <= n < m.spp:

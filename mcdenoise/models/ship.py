@@ -53,9 +53,9 @@ def dataset_command(data_dir: str | Path) -> str:
         d = json.loads(p.read_text())
     except (OSError, ValueError) as e:
         raise WeightsError(f"{p}: cannot read the dataset's settings ({e})") from None
-    if d.get("format") == "mcdenoise-cycles-dataset":
-        from mcdenoise.render.cycles.dataset import recipe_command
+    from mcdenoise.render.cycles.dataset import CONFIG_FORMAT as CYCLES_FORMAT, recipe_command
 
+    if d.get("format") == CYCLES_FORMAT:
         return recipe_command(data_dir, d)
     size = d["width"] if d["width"] == d["height"] else f"{d['width']}x{d['height']}"
     args = ["mcdenoise", "dataset", "--out", str(data_dir), "--count", str(d["count"]), "--spp", str(d["spp"]),
