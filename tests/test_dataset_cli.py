@@ -263,34 +263,46 @@ def test_views_with_frames_and_older_datasets_are_refused(ds: Path, tmp_path: Pa
     assert len(err.splitlines()) == 1 and "generator" in err
 
 
-def test_generator_3_checks_views_cheaply_and_generator_2_still_renders(tmp_path: Path,
-                                                                          capsys: pytest.CaptureFixture[str]) -> None:
-    """Catches: the cheap view check applied to generator-2 datasets (their recipes would no
-    longer render the same images), a generator-2 dataset resumed by the new default without a
-    hint, and the check's spp and block not recorded."""
-    from mcdenoise.render.dataset_config import DatasetConfig
+def test_generators_4_and_3_check_views_cheaply_and_generator_2_still_renders(tmp_path: Path,
+                                                                                capsys: pytest.CaptureFixture[str]) -> None:
+    """Catches: a cheaper check applied to datasets of an older generator (their recipes would no
+    longer render the same images: generator 3 checks extra views at 4 spp and the scene's preview
+    at the input's settings, 2 everything at the input's settings), a generator-2 dataset resumed by
+    the new default without a hint, and the check's spp and block not recorded."""
+    from mcdenoise.render.dataset_config import GENERATOR, DatasetConfig
     from mcdenoise.render.procedural_image import check_settings
     from mcdenoise.render import RenderSettings
 
+    assert GENERATOR == 4
     s = RenderSettings(spp=16, ref_spp=0, width=16, height=16)
     assert check_settings(DatasetConfig(count=1, generator=2), s) == (s, 1)
     got, block = check_settings(DatasetConfig(count=1, generator=3), s)
     assert (got.spp, block) == (4, 2) and got.width == 16
+    assert check_settings(DatasetConfig(count=1, generator=3), s, first_view=True) == (s, 1)
+    for first in (False, True):
+        got, block = check_settings(DatasetConfig(count=1, generator=4), s, first_view=first)
+        assert (got.spp, block) == (1, 4) and got.width == 16
     low = RenderSettings(spp=4, ref_spp=0, width=16, height=16)
     assert check_settings(DatasetConfig(count=1, generator=3), low) == (low, 1)
 
     args = ["--count", "1", "--views", "2", "--spp", "8", "--ref-spp", "0", "--size", "16", "--objects", "10-12",
             "--seed", "4", "--no-progress"]
-    new, old = tmp_path / "g3", tmp_path / "g2"
+    new, mid, old = tmp_path / "g4", tmp_path / "g3", tmp_path / "g2"
     assert _run("--out", str(new), *args) == 0
+    assert _run("--out", str(mid), "--generator", "3", *args) == 0
     assert _run("--out", str(old), "--generator", "2", *args) == 0
-    assert json.loads((new / "dataset.json").read_text())["generator"] == 3
-    assert json.loads((old / "dataset.json").read_text())["generator"] == 2
-    view = json.loads((new / "proc_000000" / "view_001" / "meta.json").read_text())["extra"]["view"]
-    assert (view["check_spp"], view["check_block"]) == (4, 1)  # 8 spp: 4-spp check, blocks of round(sqrt 2) = 1
-    assert "check_spp" not in json.loads((old / "proc_000000" / "view_001" / "meta.json").read_text())["extra"]["view"]
-    # view 0 is checked by the scene's own preview in both versions: the same image
-    np.testing.assert_array_equal(_radiance(new / "proc_000000" / "view_000"), _radiance(old / "proc_000000" / "view_000"))
+    for d, g in ((new, 4), (mid, 3), (old, 2)):
+        assert json.loads((d / "dataset.json").read_text())["generator"] == g
+
+    def view(d: Path, v: int) -> dict:
+        return json.loads((d / "proc_000000" / f"view_{v:03d}" / "meta.json").read_text())["extra"]["view"]
+
+    for v in (0, 1):  # 8 spp: 1-spp checks on blocks of round(sqrt 8) = 3
+        assert (view(new, v)["check_spp"], view(new, v)["check_block"]) == (1, 3)
+    assert (view(mid, 1)["check_spp"], view(mid, 1)["check_block"]) == (4, 1)  # blocks of round(sqrt 2) = 1
+    assert "check_spp" not in view(mid, 0) and "check_spp" not in view(old, 1)
+    # view 0 is checked by the scene's own preview at the input's settings in versions 2 and 3: the same image
+    np.testing.assert_array_equal(_radiance(mid / "proc_000000" / "view_000"), _radiance(old / "proc_000000" / "view_000"))
     capsys.readouterr()
     assert _run("--out", str(old), *args) == 1  # resumed without --generator 2: refused, and told how
     err = capsys.readouterr().err.strip()

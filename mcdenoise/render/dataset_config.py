@@ -38,13 +38,15 @@ __all__ = [
 
 CONFIG_FILE = "dataset.json"
 #: Version of the drawing + preview + exposure pipeline. Images of one dataset must all come from
-#: one version (3: an extra view's camera is checked at a quarter of the input's spp, measured on
-#: 2x2 blocks, with the input's kernel; 2: every check at the input's settings; 1: 32-pixel preview
-#: with Mitsuba's path integrator); a dataset.json without the field was made by version 1.
-GENERATOR = 3
+#: one version (4: every check, the scene's preview included, at 1 spp measured on blocks of about
+#: the input's samples, one time slice when objects move; 3: an extra view's camera is checked at
+#: a quarter of the input's spp, measured on 2x2 blocks, with the input's kernel; 2: every check at
+#: the input's settings; 1: 32-pixel preview with Mitsuba's path integrator); a dataset.json
+#: without the field was made by version 1.
+GENERATOR = 4
 #: Versions this code renders: new datasets get :data:`GENERATOR`; a dataset made by an older one
 #: resumes, and renders again from its recipe, with that version (``--generator``).
-GENERATORS = (2, 3)
+GENERATORS = (2, 3, 4)
 #: Mitsuba variants a dataset may record (``mcdenoise.render._mitsuba.VARIANTS`` less ``auto``).
 RENDER_VARIANTS = ("llvm_ad_rgb", "cuda_ad_rgb")
 

@@ -18,22 +18,28 @@ __all__ = ["render_procedural_image"]
 
 #: Camera draws per extra view before falling back to the drawn (already checked) camera.
 VIEW_ATTEMPTS = 8
-#: Generator 3: an extra view's check renders at most this many spp (the kernel is the input's:
-#: the sample count is not a literal of it), and measures its statistics on pixel blocks
+#: Samples per pixel of a camera check, per generator: 3 checks an extra view at 4 spp, 4 checks
+#: every view (the scene's preview too) at 1 spp. The kernel is the input's either way (the sample
+#: count is not a literal of it); the statistics are measured on pixel blocks
 #: (:func:`check_settings`), so that black and dim fractions see about the input's noise.
-CHECK_SPP = 4
+CHECK_SPP = {3: 4, 4: 1}
 
 
-def check_settings(cfg: DatasetConfig, settings: Any) -> tuple[Any, int]:
-    """``(settings, block)`` of an extra view's camera check: the input's own under generator 2;
-    under 3, :data:`CHECK_SPP` and a block side that restores about the input's samples per measured
-    value (16 spp -> 4 spp on 2x2 blocks). In ``bench_dataset.py --size 256 --spp 16 --views 16``
-    the check at the input's settings cost as much as the input itself (2.5-5.9 s per view)."""
+def check_settings(cfg: DatasetConfig, settings: Any, *, first_view: bool = False) -> tuple[Any, int]:
+    """``(settings, block)`` of a camera check: the input's own under generator 2 (and for the
+    scene's preview, ``first_view``, under 3); else :data:`CHECK_SPP` and a block side that restores
+    about the input's samples per measured value (generator 3: 16 spp -> 4 spp on 2x2 blocks; 4: 16
+    spp -> 1 spp on 4x4 blocks). A check of a scene with moving objects renders one time slice per
+    sample: at 1 spp, one scene update and one kernel launch instead of the input's 16.
+
+    Measured (``bench_dataset.py --size 256 --spp 16 --views 16``): the check at the input's
+    settings cost as much as the input itself (2.5-5.9 s per view); see docs/DATASETS.md.
+    """
     from dataclasses import replace
 
-    if cfg.generator < 3 or settings.spp <= CHECK_SPP:
+    spp = CHECK_SPP.get(cfg.generator)
+    if spp is None or (first_view and cfg.generator < 4) or settings.spp <= spp:
         return settings, 1
-    spp = CHECK_SPP
     return replace(settings, spp=spp), max(1, min(4, round((settings.spp / spp) ** 0.5)))
 
 
@@ -104,8 +110,11 @@ def render_procedural_image(
         def view0(ps: Any) -> Any:
             return _settings(cfg, derive_seed(scene_seed, 0, 1), ps=ps, camera=ps.camera_to_world,
                              camera_end=ps.camera_to_world_end)
+
+        def preview0(ps: Any) -> tuple[Any, int]:
+            return check_settings(cfg, view0(ps), first_view=True)
         ps = generate(scene_seed, kind=cfg.kind, width=cfg.width, height=cfg.height, objects=tuple(cfg.objects), world=cfg.world,
-                      settings=view0, keep_loaded=True)
+                      settings=preview0, keep_loaded=True)
     else:
         ps = generate(scene_seed, kind=cfg.kind, width=cfg.width, height=cfg.height, objects=tuple(cfg.objects), world=cfg.world,
                       settings=_settings(cfg, derive_seed(scene_seed, 0, 1)), record_position=True, keep_loaded=True)
@@ -139,8 +148,8 @@ def render_procedural_image(
             if cfg.views > 1:
                 view_meta["view"] = {"index": v, "views": cfg.views, "rejected_cameras": rejected,
                                      "check_seconds": round(time.perf_counter() - tv, 3)}
-                if v > 0 and cfg.generator >= 3:
-                    check, block = check_settings(cfg, settings)
+                if cfg.generator >= 3 and (v > 0 or cfg.generator >= 4):
+                    check, block = check_settings(cfg, settings, first_view=v == 0)
                     view_meta["view"].update(check_spp=check.spp, check_block=block)
             extra = {**view_meta, "camera_to_world": c2w.tolist()}
             if settings.object_motion:

@@ -57,7 +57,9 @@ def generate(
     render ``settings`` the caller will use (a RenderSettings, or a function of the drawn scene
     returning one, e.g. to include its motion) and ``record_position``, so the preview compiles
     the caller's kernel, and returned in :attr:`ProceduralScene.loaded` with its emitters
-    rescaled in place. Without it the preview is a small standalone render (``PREVIEW_SIZE``).
+    rescaled in place. ``settings`` may also give ``(settings, block)``: the preview then measures
+    its statistics on ``block`` x ``block`` pixel blocks (a check at fewer spp than the input).
+    Without ``keep_loaded`` the preview is a small standalone render (``PREVIEW_SIZE``).
     """
     reasons: list[str] = []
     for attempt in range(max_attempts):
@@ -73,7 +75,8 @@ def generate(
         if not check:
             return ps
         pset = (settings(ps) if callable(settings) else settings) if keep_loaded else None
-        stats = preview_stats(ps, scene=ps.loaded, settings=pset,
+        pset, block = pset if isinstance(pset, tuple) else (pset, 1)
+        stats = preview_stats(ps, scene=ps.loaded, settings=pset, block=block,
                               seed=derive_seed(drawn, 8) if keep_loaded else 0, record_position=record_position)
         problem = stats.problem()
         if problem is None:
