@@ -220,6 +220,8 @@ def test_views_share_scene_and_split_not_camera(views_ds: Path) -> None:
         imgs = [read_image(views_ds / e["path"]) for e in mine]
         assert len({img.meta.extra["procedural"]["seed"] for img in imgs}) == 1
         assert len({img.meta.seed for img in imgs}) == 3
+        # generator 4: the three inputs come from one stack (docs/DATASETS.md, "Speed")
+        assert [img.meta.extra["view_stack"]["views"] for img in imgs] == [[0, 3]] * 3
         cams = [np.asarray(img.meta.extra["camera_to_world"]) for img in imgs]
         assert not np.allclose(cams[0], cams[1]) and not np.allclose(cams[1], cams[2])
         rads = [img.read_noisy(["radiance"])["radiance"] for img in imgs]

@@ -47,12 +47,15 @@ def render_image(
     nonfinite: str = "sanitize",
     max_bytes: int | None = DEFAULT_MAX_BYTES,
     reference: tuple[dict[str, np.ndarray], int] | None = None,
+    samples: dict[str, np.ndarray] | None = None,
 ) -> Path:
     """Render one image folder (per-sample data, noisy.exr, reference.exr, meta.json), atomically.
 
     ``reference`` = (layers ``name -> (C, H, W)``, its spp) stores a reference made elsewhere
     (e.g. the validation scenes' 8192-spp references) instead of rendering one; then
-    ``settings.ref_spp`` must be 0.
+    ``settings.ref_spp`` must be 0. ``samples`` (name -> (S, C, H, W) float32, every channel of
+    ``settings.sample_channels()``) stores per-sample data rendered elsewhere (a view stack,
+    :mod:`mcdenoise.render.view_stack`) instead of rendering it; the reference is still rendered here.
 
     The per-sample data is streamed to disk band by band, so memory stays bounded at any size.
     ``record_position`` adds a per-pixel ``position`` buffer (mean over samples) to noisy.exr;
@@ -73,7 +76,7 @@ def render_image(
         return _render_locked(scene, out, settings, scene_name=scene_name, extra_meta=extra_meta,
                               camera_to_world=camera_to_world, record_position=record_position, overwrite=overwrite,
                               progress=progress, extra_noisy=extra_noisy, nonfinite=nonfinite, max_bytes=max_bytes,
-                              given_reference=reference)
+                              given_reference=reference, given_samples=samples)
     finally:
         lock.release()
 
@@ -81,7 +84,8 @@ def render_image(
 def _render_locked(scene: Any, out: Path, settings: RenderSettings, *, scene_name: str, extra_meta: dict | None,
                    camera_to_world: np.ndarray | None, record_position: bool, overwrite: bool, progress: bool,
                    extra_noisy: dict[str, np.ndarray] | None, nonfinite: str, max_bytes: int | None,
-                   given_reference: tuple[dict[str, np.ndarray], int] | None = None) -> Path:
+                   given_reference: tuple[dict[str, np.ndarray], int] | None = None,
+                   given_samples: dict[str, np.ndarray] | None = None) -> Path:
     import drjit as dr
 
     from mcdenoise.data import format as fmt
@@ -121,7 +125,18 @@ def _render_locked(scene: Any, out: Path, settings: RenderSettings, *, scene_nam
                leave=False, file=sys.stderr)
     try:
         pos_sum = np.zeros((3, settings.height, settings.width), dtype=np.float64) if record_position else None
-        for samples, rows, chunk in iter_sample_chunks(scene, settings, camera_to_world=camera_to_world, record_position=record_position):
+        if given_samples is not None:
+            if record_position:
+                raise ValueError("render_image: record_position needs the samples rendered here")
+            want = (settings.spp, settings.height, settings.width)
+            for name in channels:
+                got = given_samples[name].shape if name in given_samples else None
+                if got is None or (got[0], got[2], got[3]) != want:
+                    raise ValueError(f"render_image: given samples {name!r} are {got}, expected (spp, C, H, W) = {want}")
+            chunks: Any = [(slice(0, settings.spp), slice(0, settings.height), given_samples)]
+        else:
+            chunks = iter_sample_chunks(scene, settings, camera_to_world=camera_to_world, record_position=record_position)
+        for samples, rows, chunk in chunks:
             if pos_sum is not None:
                 pos_sum[:, rows] += chunk.pop("position").sum(axis=0, dtype=np.float64)
             for name in channels:

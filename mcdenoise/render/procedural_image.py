@@ -74,12 +74,65 @@ def _view(cfg: DatasetConfig, ps: Any, scene_seed: int, view: int, rejected: lis
         set_camera(ps.loaded, c2w)
         check, block = check_settings(cfg, settings)
         problem = preview_stats(ps, scene=ps.loaded, settings=check, seed=derive_seed(scene_seed, 9, view, attempt),
-                                block=block).problem()
+                                block=block, stack_camera=c2w if stacked(cfg) else None).problem()
         if problem is None:
             return c2w, settings
         rejected.append(f"camera {attempt}: {problem}")
     c2w = np.asarray(ps.camera_to_world)
     return c2w, _settings(cfg, derive_seed(scene_seed, view, 1), ps=ps, camera=c2w, camera_end=ps.camera_to_world_end)
+
+
+#: Generator 4 renders the inputs of a scene's views in stacks (:mod:`mcdenoise.render.view_stack`)
+#: of at most this many bytes of per-sample data (counted at 64 floats per sample), so that memory
+#: stays bounded: 16 views of 128x128 at 16 spp make one stack, of 256x256 four.
+STACK_BYTES = 1 << 30
+
+
+def stacked(cfg: DatasetConfig) -> bool:
+    """Whether the dataset renders its views' inputs in stacks (generator 4, several views)."""
+    return cfg.generator >= 4 and cfg.views > 1 and cfg.frames == 1
+
+
+def view_groups(cfg: DatasetConfig) -> list[list[int]]:
+    """The views of a scene, in the stacks generator 4 renders together (one view per group before).
+
+    Fixed by the dataset's options alone, so a resumed dataset re-renders exactly the stack of a
+    missing view, and gets the same pixels for it (a view's samples depend on its stack)."""
+    if not stacked(cfg):
+        return [[v] for v in range(cfg.views)]
+    per = max(1, STACK_BYTES // (cfg.width * cfg.height * cfg.spp * 64 * 4))
+    return [list(range(a, min(cfg.views, a + per))) for a in range(0, cfg.views, per)]
+
+
+def _render_stack(cfg: DatasetConfig, ps: Any, scene_seed: int, group: list[int],
+                  views: dict[int, tuple[np.ndarray, Any, dict[str, Any]]]) -> dict[int, dict[str, np.ndarray]]:
+    """Per-sample inputs of the views ``group`` rendered as one stack: view -> name -> (S, C, H, W).
+
+    The sensor is posed at the group's first camera; the stack's seed (samples and slice times)
+    is ``derive_seed(scene_seed, 4, first view)``. Each view's meta records the stack."""
+    from dataclasses import replace
+
+    from mcdenoise.render.procedural import derive_seed
+    from mcdenoise.render.procedural.views import set_camera
+    from mcdenoise.render.view_stack import iter_view_stack
+
+    first = views[group[0]]
+    seed = derive_seed(scene_seed, 4, group[0])
+    settings = replace(first[1], seed=seed)
+    set_camera(ps.loaded, first[0])
+    S, H, W = settings.spp, settings.height, settings.width
+    out: dict[int, dict[str, np.ndarray]] = {v: {} for v in group}
+    t0 = time.perf_counter()
+    for i, samples, rows, chunk in iter_view_stack(ps.loaded, settings, [views[v][0] for v in group], first[0], seed=seed):
+        dst = out[group[i]]
+        for k, a in chunk.items():
+            if k not in dst:
+                dst[k] = np.zeros((S, a.shape[1], H, W), dtype=np.float32)
+            dst[k][samples, :, rows] = a
+    seconds = round(time.perf_counter() - t0, 3)
+    for v in group:
+        views[v][2]["view_stack"] = {"views": [group[0], group[-1] + 1], "seed": seed, "seconds": seconds}
+    return out
 
 
 def render_procedural_image(
@@ -114,7 +167,7 @@ def render_procedural_image(
         def preview0(ps: Any) -> tuple[Any, int]:
             return check_settings(cfg, view0(ps), first_view=True)
         ps = generate(scene_seed, kind=cfg.kind, width=cfg.width, height=cfg.height, objects=tuple(cfg.objects), world=cfg.world,
-                      settings=preview0, keep_loaded=True)
+                      settings=preview0, keep_loaded=True, stack=stacked(cfg))
     else:
         ps = generate(scene_seed, kind=cfg.kind, width=cfg.width, height=cfg.height, objects=tuple(cfg.objects), world=cfg.world,
                       settings=_settings(cfg, derive_seed(scene_seed, 0, 1)), record_position=True, keep_loaded=True)
@@ -133,17 +186,16 @@ def render_procedural_image(
         }
     }
     if cfg.frames == 1:
-        for v, rel in enumerate(image_paths(cfg, index)):
-            if rel not in todo:
-                continue
+        paths = image_paths(cfg, index)
+
+        def setup(v: int) -> tuple[np.ndarray, Any, dict[str, Any]]:
+            """View ``v``'s camera (checked), render settings and meta."""
             tv = time.perf_counter()
             rejected: list[str] = []
             if v == 0:
-                c2w = np.asarray(ps.camera_to_world)
-                settings = view0(ps)
+                c2w, settings = np.asarray(ps.camera_to_world), view0(ps)
             else:
                 c2w, settings = _view(cfg, ps, scene_seed, v, rejected)
-            set_camera(scene, c2w)
             view_meta = dict(meta)
             if cfg.views > 1:
                 view_meta["view"] = {"index": v, "views": cfg.views, "rejected_cameras": rejected,
@@ -154,10 +206,23 @@ def render_procedural_image(
             extra = {**view_meta, "camera_to_world": c2w.tolist()}
             if settings.object_motion:
                 extra["ref_time_slices"] = min(settings.ref_time_slices, settings.ref_spp)
-            # overwrite: only a damaged leftover of ours can be there (finished images are not todo).
-            render_image(scene, root / rel, settings, scene_name=name, extra_meta=extra, overwrite=True, **write_opts)
-            if on_image is not None:
-                on_image(rel)
+            return c2w, settings, extra
+
+        for group in view_groups(cfg):
+            if not any(paths[v] in todo for v in group):
+                continue
+            views = {v: setup(v) for v in group}
+            inputs = _render_stack(cfg, ps, scene_seed, group, views) if stacked(cfg) else {}
+            for v in group:
+                if paths[v] not in todo:
+                    continue
+                c2w, settings, extra = views[v]
+                set_camera(scene, c2w)
+                # overwrite: only a damaged leftover of ours can be there (finished images are not todo).
+                render_image(scene, root / paths[v], settings, scene_name=name, extra_meta=extra, overwrite=True,
+                             samples=inputs.pop(v, None), **write_opts)
+                if on_image is not None:
+                    on_image(paths[v])
         return
     # A sequence: static scene, camera along a smooth path (in-frame motion blur is off so that
     # frames are consistent and motion vectors describe all the change between frames).

@@ -25,11 +25,17 @@ def _trace_chunk(
     record_position: bool,
     reduce: bool,
     keep: Collection[str] | None = None,
+    stack: tuple[int, Any] | None = None,
 ) -> dict[str, np.ndarray]:
     """Trace rows ``rows`` at ``spp`` samples per pixel.
 
     Returns name -> (spp, C, h, W) float32 per-sample arrays, or (C, h, W) float64 pixel sums when
     ``reduce``. ``keep`` (None = all) limits the outputs; the kernel then skips the others.
+
+    ``stack`` = (H, M) renders several views of the scene in one launch: ``rows`` then index an
+    image of V stacked views (V*H rows), and the rays of view ``v`` are the sensor's rays (its pose,
+    its camera motion) moved by the rigid transform ``M[12v:12v+12]`` (the 3x4 rows of
+    ``camera_v @ inverse(sensor camera)``, a Float array), see :mod:`mcdenoise.render.view_stack`.
     """
     mi = mitsuba()
     import drjit as dr
@@ -48,6 +54,10 @@ def _trace_chunk(
     py = idx // dr.opaque(mi.UInt32, W)
     px = idx - py * dr.opaque(mi.UInt32, W)
     py += dr.opaque(mi.UInt32, y0)
+    view = None
+    if stack is not None:
+        view = py // dr.opaque(mi.UInt32, stack[0])
+        py -= view * dr.opaque(mi.UInt32, stack[0])
     pos = mi.Vector2f(mi.Float(px), mi.Float(py))
     sub = sampler.next_2d()
     sample_pos = pos + sub
@@ -71,6 +81,8 @@ def _trace_chunk(
         ray.scale_differential(dr.rsqrt(float(spp)))
     if prep.cam_start is not None:
         ray = _move_camera_rays(ray, t_norm, prep)
+    if stack is not None:
+        ray = _move_rays_to_views(ray, view, stack[1])
     out = prep.integrator.trace(scene, sampler, ray, mi.Bool(True), level)
     values: dict[str, Any] = {"radiance": ray_weight * out["radiance"]}
     if level >= LEVEL_REFERENCE:
@@ -116,6 +128,26 @@ def _trace_chunk(
         arr = np.stack([host(c).reshape(h * W, spp).sum(axis=1, dtype=np.float64) for c in cs], 0)
         res[k] = arr.reshape(len(cs), h, W)
     return res
+
+
+def _move_rays_to_views(ray: Any, view: Any, mats: Any) -> Any:
+    """Apply per lane the rigid transform of the lane's view (rows of 3x4 matrices in ``mats``)."""
+    mi = mitsuba()
+    import drjit as dr
+
+    m = [dr.gather(mi.Float, mats, view * 12 + k) for k in range(12)]
+
+    def point(p: Any) -> Any:
+        return mi.Point3f(*(m[4 * r] * p.x + m[4 * r + 1] * p.y + m[4 * r + 2] * p.z + m[4 * r + 3] for r in range(3)))
+
+    def vector(d: Any) -> Any:
+        return mi.Vector3f(*(m[4 * r] * d.x + m[4 * r + 1] * d.y + m[4 * r + 2] * d.z for r in range(3)))
+
+    ray.o, ray.d = point(ray.o), dr.normalize(vector(ray.d))
+    if ray.has_differentials:
+        ray.o_x, ray.o_y = point(ray.o_x), point(ray.o_y)
+        ray.d_x, ray.d_y = dr.normalize(vector(ray.d_x)), dr.normalize(vector(ray.d_y))
+    return ray
 
 
 def _sample_major(comps: Mapping[str, list[Any]], *, spp: int, h: int, W: int) -> dict[str, np.ndarray]:

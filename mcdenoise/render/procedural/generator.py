@@ -41,6 +41,7 @@ def generate(
     record_position: bool = False,
     keep_loaded: bool = False,
     world: str = "classic",
+    stack: bool = False,
 ) -> ProceduralScene:
     """Draw a scene from ``seed``; with ``check``, re-draw rejected ones from derived seeds.
 
@@ -59,7 +60,8 @@ def generate(
     the caller's kernel, and returned in :attr:`ProceduralScene.loaded` with its emitters
     rescaled in place. ``settings`` may also give ``(settings, block)``: the preview then measures
     its statistics on ``block`` x ``block`` pixel blocks (a check at fewer spp than the input).
-    Without ``keep_loaded`` the preview is a small standalone render (``PREVIEW_SIZE``).
+    Without ``keep_loaded`` the preview is a small standalone render (``PREVIEW_SIZE``). With
+    ``stack`` it renders as a view stack of the drawn camera (the kernel of stacked inputs).
     """
     reasons: list[str] = []
     for attempt in range(max_attempts):
@@ -77,6 +79,7 @@ def generate(
         pset = (settings(ps) if callable(settings) else settings) if keep_loaded else None
         pset, block = pset if isinstance(pset, tuple) else (pset, 1)
         stats = preview_stats(ps, scene=ps.loaded, settings=pset, block=block,
+                              stack_camera=np.asarray(ps.camera_to_world) if stack and keep_loaded else None,
                               seed=derive_seed(drawn, 8) if keep_loaded else 0, record_position=record_position)
         problem = stats.problem()
         if problem is None:

@@ -53,6 +53,7 @@ def preview_stats(
     settings: Any = None,
     record_position: bool = False,
     block: int = 1,
+    stack_camera: np.ndarray | None = None,
 ) -> PreviewStats:
     """Render ``ps`` cheaply with our integrator and measure luminance statistics, plus object
     coverage from one ray per pixel centre.
@@ -65,6 +66,9 @@ def preview_stats(
     seed (the preview's noise is independent of the input's). ``block`` > 1 measures the luminance
     statistics on the means of ``block`` x ``block`` pixel blocks (a low-spp check; the image's
     last rows and columns that fill no block are left out); coverage stays per pixel.
+    ``stack_camera`` (the sensor's current pose, 4x4) renders through a view stack of that one
+    camera (:mod:`mcdenoise.render.view_stack`), so that the check compiles the kernel the
+    stacked inputs then reuse (generator 4's views).
     """
     from dataclasses import replace
 
@@ -79,7 +83,17 @@ def preview_stats(
     settings = replace(settings, seed=int(seed))
     if scene is None:
         scene = load_procedural(ps, settings.width, settings.height)
-    arrays, _ = render_samples(scene, settings, record_position=record_position)
+    if stack_camera is not None:
+        from mcdenoise.render.view_stack import iter_view_stack
+
+        # The stack keeps every input channel (the kept outputs are part of the kernel, which
+        # the inputs then reuse); only the radiance is read.
+        rad = np.zeros((settings.spp, 3, settings.height, settings.width), dtype=np.float32)
+        for _, samples, rows, chunk in iter_view_stack(scene, settings, [stack_camera], stack_camera, seed=settings.seed):
+            rad[samples, :, rows] = chunk["radiance"]
+        arrays = {"radiance": rad}
+    else:
+        arrays, _ = render_samples(scene, settings, record_position=record_position)
     img = arrays["radiance"].mean(axis=0, dtype=np.float64).transpose(1, 2, 0)
     del arrays
     lum = luminance(img)
