@@ -19,7 +19,7 @@ kernel compiles as it would for seeds never rendered before; ``--warm`` keeps th
 Per image the table lists, from each meta.json: ``generate`` (drawing, scene load, and the preview
 check, which compiles the input's kernel), ``check`` (an extra view's camera check), ``samples`` and
 ``reference`` (renderer timings; a scene's first reference compiles its kernel). Under generator 4
-a view's ``samples`` is its share of its view stack's render plus its own writing.
+a view's ``samples`` and ``reference`` are its shares of its view stack's renders plus its own writing.
 
 To measure an older checkout, copy this file into its ``benchmarks/`` and run it there with
 ``--views 1`` (older DatasetConfigs have no views).
@@ -102,7 +102,9 @@ def main() -> int:
             view = meta.extra.get("view", {})
             stack = meta.extra.get("view_stack")
             if stack:  # generator 4: the inputs of a stack of views came from one render, shared out evenly
-                rs = {**rs, "samples": round(rs["samples"] + stack["seconds"] / (stack["views"][1] - stack["views"][0]), 3)}
+                n = stack["views"][1] - stack["views"][0]
+                rs = {**rs, "samples": round(rs["samples"] + stack["seconds"] / n, 3),
+                      "reference": round(rs["reference"] + stack.get("reference_seconds", 0.0) / n, 3)}
             rows.append({
                 "image": rel, "kind": proc["kind"], "objects": proc["objects"] + proc["furniture"],
                 "rejected": len(proc.get("rejected", [])) + len(view.get("rejected_cameras", [])),

@@ -7,6 +7,7 @@ Costs and why a scene is loaded once: :mod:`mcdenoise.render.procedural_dataset`
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Any, Callable
 
@@ -114,6 +115,7 @@ def _render_stack(cfg: DatasetConfig, ps: Any, scene_seed: int, group: list[int]
 
     from mcdenoise.render.procedural import derive_seed
     from mcdenoise.render.procedural.views import set_camera
+    from mcdenoise.render.reference import render_reference
     from mcdenoise.render.view_stack import iter_view_stack
 
     first = views[group[0]]
@@ -130,8 +132,21 @@ def _render_stack(cfg: DatasetConfig, ps: Any, scene_seed: int, group: list[int]
                 dst[k] = np.zeros((S, a.shape[1], H, W), dtype=np.float32)
             dst[k][samples, :, rows] = a
     seconds = round(time.perf_counter() - t0, 3)
+    ref_seconds = 0.0
+    if settings.ref_spp > 0:
+        # Every view's reference in one stack too; moving objects get the most time slices any
+        # of the views needs (each view's own count before: slices only make it converge better).
+        t1 = time.perf_counter()
+        slices = max(views[v][1].ref_time_slices for v in group)
+        refs = render_reference(ps.loaded, replace(settings, ref_time_slices=slices), stack=([views[v][0] for v in group], first[0]))
+        ref_seconds = round(time.perf_counter() - t1, 3)
+        for v, ref in zip(group, refs):
+            out[v]["reference"] = ref
+            if settings.object_motion:
+                views[v][2]["ref_time_slices"] = min(slices, settings.ref_spp)
     for v in group:
-        views[v][2]["view_stack"] = {"views": [group[0], group[-1] + 1], "seed": seed, "seconds": seconds}
+        views[v][2]["view_stack"] = {"views": [group[0], group[-1] + 1], "seed": seed, "seconds": seconds,
+                                     "reference_seconds": ref_seconds}
     return out
 
 
@@ -218,9 +233,14 @@ def render_procedural_image(
                     continue
                 c2w, settings, extra = views[v]
                 set_camera(scene, c2w)
+                given = inputs.pop(v, {})
+                ref = given.pop("reference", None)
+                if ref is not None:  # rendered with the stack: stored as given, not rendered again
+                    settings = replace(settings, ref_spp=0)
+                    ref = (ref, cfg.ref_spp)
                 # overwrite: only a damaged leftover of ours can be there (finished images are not todo).
                 render_image(scene, root / paths[v], settings, scene_name=name, extra_meta=extra, overwrite=True,
-                             samples=inputs.pop(v, None), **write_opts)
+                             samples=given or None, reference=ref, **write_opts)
                 if on_image is not None:
                     on_image(paths[v])
         return

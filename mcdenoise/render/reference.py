@@ -3,7 +3,7 @@ of the per-sample input's."""
 
 from __future__ import annotations
 
-from typing import Any, Callable
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
@@ -26,20 +26,33 @@ def render_reference(
     camera_to_world: np.ndarray | None = None,
     spp: int | None = None,
     progress: Callable[[int], None] | None = None,
-) -> dict[str, np.ndarray]:
+    stack: tuple[Sequence[np.ndarray], np.ndarray] | None = None,
+) -> Any:
     """Reference image: name -> (C, H, W) float32 for radiance, diffuse, specular, albedo.
 
     ``progress`` is called with the number of camera samples traced after each chunk.
 
     Seeds are derived from ``seed`` under a key the per-sample input never uses, so reference and
     input noise are independent. Object motion is resolved with ``spp`` stratified time slices.
+
+    ``stack`` = (cameras, sensor camera) renders the references of several views of the scene in
+    one stack (:mod:`mcdenoise.render.view_stack`; the sensor must be posed at the sensor camera)
+    and returns one such dict per camera; time slices are then shared by the views.
     """
     seed = settings.seed if seed is None else int(seed)
     spp = settings.ref_spp if spp is None else int(spp)
     if spp < 1:
         raise SceneError(f"render settings: reference spp={spp} must be >= 1")
     prep = _prepare(scene, settings, camera_to_world)
-    W, H = settings.width, settings.height
+    W, V = settings.width, 1
+    traced: Any = None
+    if stack is not None:
+        from mcdenoise.render._mitsuba import mitsuba
+        from mcdenoise.render.view_stack import view_transforms
+
+        V = len(stack[0])
+        traced = (settings.height, mitsuba().Float(view_transforms(stack[1], stack[0])))
+    H = settings.height * V  # the views' rows, stacked
     sums: dict[str, np.ndarray] = {}
     try:
         if settings.object_motion:
@@ -64,7 +77,7 @@ def render_reference(
             bands = _row_bands(W, H, k, settings.chunk_samples)
             for b, rows in enumerate(bands):
                 out = _trace_chunk(scene, prep, rows=rows, spp=k, seed=stream_seed(seed, 4, i, b), level=LEVEL_REFERENCE,
-                                   time_override=t, record_position=False, reduce=True)
+                                   time_override=t, record_position=False, reduce=True, stack=traced)
                 for name, v in out.items():
                     if name not in sums:
                         sums[name] = np.zeros((v.shape[0], H, W), dtype=np.float64)
@@ -73,4 +86,6 @@ def render_reference(
                     progress(k * (rows.stop - rows.start) * W)
     finally:
         _restore(scene, prep)
-    return {k: (sums[k] / spp).astype(np.float32) for k in REFERENCE_CHANNELS}
+    h = settings.height
+    refs = [{k: (sums[k][:, v * h:(v + 1) * h] / spp).astype(np.float32) for k in REFERENCE_CHANNELS} for v in range(V)]
+    return refs if stack is not None else refs[0]
