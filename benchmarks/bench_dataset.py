@@ -102,9 +102,9 @@ def main() -> int:
             view = meta.extra.get("view", {})
             stack = meta.extra.get("view_stack")
             if stack:  # generator 4: the inputs of a stack of views came from one render, shared out evenly
-                n = stack["views"][1] - stack["views"][0]
-                rs = {**rs, "samples": round(rs["samples"] + stack["seconds"] / n, 3),
-                      "reference": round(rs["reference"] + stack.get("reference_seconds", 0.0) / n, 3)}
+                k = stack["views"][1] - stack["views"][0]
+                rs = {**rs, "samples": round(rs["samples"] + stack["seconds"] / k, 3),
+                      "reference": round(rs["reference"] + stack.get("reference_seconds", 0.0) / k, 3)}
             rows.append({
                 "image": rel, "kind": proc["kind"], "objects": proc["objects"] + proc["furniture"],
                 "rejected": len(proc.get("rejected", [])) + len(view.get("rejected_cameras", [])),
