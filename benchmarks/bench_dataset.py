@@ -88,9 +88,9 @@ def main() -> int:
     cfg = DatasetConfig(count=args.count, seed=args.seed, spp=args.spp, ref_spp=args.ref_spp, width=n, height=n,
                         objects=parse_objects(args.objects), world=args.world, max_depth=args.max_depth, **kw)
     root = Path(tmp.name) / "ds"
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     render_dataset(root, cfg, progress=False)
-    wall = time.perf_counter() - t0
+    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     render_cornell(max(1, args.cornell - 1))
     cornell_s = statistics.median(cornell[1:])
     rows = []
@@ -123,6 +123,8 @@ def main() -> int:
         "cornell_per_image_s": round(cornell_s, 2),
         "wall_s": round(wall, 2),
         "per_image_s": round(per_image, 2),
+        "cpu_s": round(cpu, 1),  # all threads of the process (Dr.Jit's pool included)
+        "cpu_per_image_s": round(cpu / max(1, len(rows)), 2),
         "ratio": round(per_image / cornell_s, 2),
         "images": rows,
     }
@@ -147,6 +149,8 @@ def main() -> int:
     print(f"procedural: {cfg.count} scene(s) x {args.views} view(s): {wall:.1f} s wall, {per_image:.2f} s per image "
           f"({'cold' if args.cold else 'warm'} kernel cache; {res['machine']})")
     print(f"ratio procedural / cornell-box per image: {res['ratio']:.2f}")
+    print(f"CPU time of the procedural images: {cpu:.1f} CPU-s, {res['cpu_per_image_s']:.2f} CPU-s per image "
+          f"({res['cpu_per_image_s'] * 2000 / 3600:.2f} CPU-hours for 2000 such images)")
     if args.json:
         args.json.write_text(json.dumps(res, indent=1) + "\n")
     return 0
