@@ -18,17 +18,6 @@ W, H, S = 32, 24, 4
 
 
 @pytest.fixture(scope="module")
-def mi():
-    from mcdenoise.errors import SceneError
-    from mcdenoise.render._mitsuba import mitsuba
-
-    try:
-        return mitsuba()
-    except SceneError as e:  # pragma: no cover - depends on the machine
-        pytest.skip(f"Mitsuba LLVM backend unavailable: {e}")
-
-
-@pytest.fixture(scope="module")
 def cornell(mi):
     from mcdenoise.render import load_scene
 

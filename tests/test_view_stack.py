@@ -10,17 +10,6 @@ pytestmark = pytest.mark.render
 N, SPP = 16, 32
 
 
-@pytest.fixture(scope="module")
-def mi():
-    from mcdenoise.errors import SceneError
-    from mcdenoise.render._mitsuba import mitsuba
-
-    try:
-        return mitsuba()
-    except SceneError as e:  # pragma: no cover - depends on the machine
-        pytest.skip(f"Mitsuba LLVM backend unavailable: {e}")
-
-
 def _camera(scene) -> np.ndarray:
     from mcdenoise.render._mitsuba import mitsuba
 
