@@ -265,6 +265,26 @@ def test_views_with_frames_and_older_datasets_are_refused(ds: Path, tmp_path: Pa
     assert len(err.splitlines()) == 1 and "generator" in err
 
 
+def test_view_stacks_are_fixed_by_the_options_and_bounded_in_memory() -> None:
+    """Catches: stacks that depend on anything but the dataset's options (a resumed run would
+    render a missing view in another stack, so with other samples), a stack holding more
+    per-sample data in memory than STACK_BYTES (a large image must stream to disk view by view),
+    and older generators stacked (their recipes would no longer give the same images)."""
+    from mcdenoise.render.dataset_config import DatasetConfig
+    from mcdenoise.render.procedural_image import STACK_BYTES, stacked, view_groups
+
+    def cfg(size: int, views: int = 16, generator: int = 4) -> DatasetConfig:
+        return DatasetConfig(count=1, width=size, height=size, spp=16, views=views, generator=generator)
+
+    assert view_groups(cfg(128)) == [list(range(16))]
+    assert view_groups(cfg(256)) == [list(range(a, a + 4)) for a in range(0, 16, 4)]
+    assert view_groups(cfg(128, views=17)) == [list(range(16)), [16]]
+    for c in (cfg(1024), cfg(128, generator=3), cfg(128, views=1)):
+        assert not stacked(c) and view_groups(c) == [[v] for v in range(c.views)]
+    for c in (cfg(128), cfg(256), cfg(362)):
+        assert stacked(c) and max(map(len, view_groups(c))) * c.width * c.height * c.spp * 64 * 4 <= STACK_BYTES
+
+
 def test_generators_4_and_3_check_views_cheaply_and_generator_2_still_renders(tmp_path: Path,
                                                                                 capsys: pytest.CaptureFixture[str]) -> None:
     """Catches: a cheaper check applied to datasets of an older generator (their recipes would no

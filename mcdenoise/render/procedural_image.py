@@ -85,13 +85,20 @@ def _view(cfg: DatasetConfig, ps: Any, scene_seed: int, view: int, rejected: lis
 
 #: Generator 4 renders the inputs of a scene's views in stacks (:mod:`mcdenoise.render.view_stack`)
 #: of at most this many bytes of per-sample data (counted at 64 floats per sample), so that memory
-#: stays bounded: 16 views of 128x128 at 16 spp make one stack, of 256x256 four.
+#: stays bounded: 16 views of 128x128 at 16 spp make one stack, of 256x256 four; from about
+#: 512x512 at 16 spp, where two views would not fit, views render one by one.
 STACK_BYTES = 1 << 30
 
 
+def _per_stack(cfg: DatasetConfig) -> int:
+    return int(STACK_BYTES // (cfg.width * cfg.height * cfg.spp * 64 * 4))
+
+
 def stacked(cfg: DatasetConfig) -> bool:
-    """Whether the dataset renders its views' inputs in stacks (generator 4, several views)."""
-    return cfg.generator >= 4 and cfg.views > 1 and cfg.frames == 1
+    """Whether the dataset renders its views' inputs in stacks: generator 4, several views, and at
+    least two of them within :data:`STACK_BYTES` (a larger image streams its samples to disk band
+    by band, one view at a time, as before: a stack holds its views' samples in memory)."""
+    return cfg.generator >= 4 and cfg.views > 1 and cfg.frames == 1 and _per_stack(cfg) >= 2
 
 
 def view_groups(cfg: DatasetConfig) -> list[list[int]]:
@@ -101,7 +108,7 @@ def view_groups(cfg: DatasetConfig) -> list[list[int]]:
     missing view, and gets the same pixels for it (a view's samples depend on its stack)."""
     if not stacked(cfg):
         return [[v] for v in range(cfg.views)]
-    per = max(1, STACK_BYTES // (cfg.width * cfg.height * cfg.spp * 64 * 4))
+    per = _per_stack(cfg)
     return [list(range(a, min(cfg.views, a + per))) for a in range(0, cfg.views, per)]
 
 
