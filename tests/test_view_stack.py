@@ -145,3 +145,29 @@ def test_stacked_references_are_each_views_reference(mi, name: str) -> None:
         rad = float(abs(refs[v]["radiance"].mean() - alone["radiance"].mean()) / alone["radiance"].mean())
         assert albedo < 0.04 and rad < 0.26, (name, v, albedo, rad)
         assert float(np.abs(refs[v]["albedo"] - other["albedo"]).mean()) > 0.1
+
+
+def test_stacked_checks_judge_each_views_own_camera(mi) -> None:
+    """Catches: the stacked first-attempt checks of generator 4 measuring another view's camera
+    (the object coverage is deterministic: it must agree with each camera's own mask), or
+    accepting every camera. Scene 2 of the rich world at seed 7, 32x32: camera 0 of view 5 shows
+    objects on 7% of the image and must be rejected."""
+    from mcdenoise.render.dataset_config import DatasetConfig
+    from mcdenoise.render.procedural import derive_seed, generate
+    from mcdenoise.render.procedural.preview import object_mask
+    from mcdenoise.render.procedural.views import set_camera, view_camera
+    from mcdenoise.render.procedural_image import _settings, _stacked_checks, check_settings
+
+    cfg = DatasetConfig(count=3, seed=7, spp=16, ref_spp=0, width=32, height=32, objects=(10, 20), world="rich",
+                        max_depth=8, views=6)
+    ss = derive_seed(7, 2)
+    ps = generate(ss, width=32, height=32, objects=(10, 20), world="rich", keep_loaded=True, stack=True,
+                  settings=lambda p: check_settings(cfg, _settings(cfg, 1, ps=p, camera=p.camera_to_world,
+                                                                   camera_end=p.camera_to_world_end), first_view=True))
+    views = list(range(1, 6))
+    verdicts = _stacked_checks(cfg, ps, ss, views)
+    for v in views:
+        set_camera(ps.loaded, view_camera(ps, np.random.default_rng(derive_seed(ss, 3, v, 0))))
+        low = object_mask(ps.loaded, 32, 32).mean() < 0.08
+        assert low == ("objects cover" in (verdicts[v] or "")), (v, verdicts[v])
+    assert "objects cover" in (verdicts[5] or "")

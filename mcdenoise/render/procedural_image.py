@@ -58,13 +58,15 @@ def _settings(cfg: DatasetConfig, seed: int, *, ps: Any = None, camera: Any = No
                           ref_time_slices=slices)
 
 
-def _view(cfg: DatasetConfig, ps: Any, scene_seed: int, view: int, rejected: list[str]) -> tuple[np.ndarray, Any]:
+def _view(cfg: DatasetConfig, ps: Any, scene_seed: int, view: int, rejected: list[str],
+          first: str | None = "unchecked") -> tuple[np.ndarray, Any]:
     """Camera (4x4) and render settings of view ``view`` >= 1 of the drawn scene ``ps``.
 
     Camera ``attempt`` of the view is drawn from ``derive_seed(scene_seed, 3, view, attempt)``, so
     a view never depends on which other views were rendered (shards, resume). Each is checked with
     the same preview as the scene (on the loaded scene, same kernel); after VIEW_ATTEMPTS
-    rejections the drawn camera is used with the view's own seed.
+    rejections the drawn camera is used with the view's own seed. ``first``: the verdict on camera 0
+    when it was checked elsewhere (:func:`_stacked_checks`: None = accepted, or the problem).
     """
     from mcdenoise.render.procedural import derive_seed, preview_stats
     from mcdenoise.render.procedural.views import set_camera, view_camera, view_motion_end
@@ -72,6 +74,11 @@ def _view(cfg: DatasetConfig, ps: Any, scene_seed: int, view: int, rejected: lis
     for attempt in range(VIEW_ATTEMPTS):
         c2w = view_camera(ps, np.random.default_rng(derive_seed(scene_seed, 3, view, attempt)))
         settings = _settings(cfg, derive_seed(scene_seed, view, 1), ps=ps, camera=c2w, camera_end=view_motion_end(ps, c2w))
+        if attempt == 0 and first != "unchecked":
+            if first is None:
+                return c2w, settings
+            rejected.append(f"camera 0: {first}")
+            continue
         set_camera(ps.loaded, c2w)
         check, block = check_settings(cfg, settings)
         problem = preview_stats(ps, scene=ps.loaded, settings=check, seed=derive_seed(scene_seed, 9, view, attempt),
@@ -110,6 +117,32 @@ def view_groups(cfg: DatasetConfig) -> list[list[int]]:
         return [[v] for v in range(cfg.views)]
     per = _per_stack(cfg)
     return [list(range(a, min(cfg.views, a + per))) for a in range(0, cfg.views, per)]
+
+
+def _stacked_checks(cfg: DatasetConfig, ps: Any, scene_seed: int, views: list[int]) -> dict[int, str | None]:
+    """The check of camera 0 of each view in ``views`` (>= 1), all in one view stack at the check's
+    spp: view -> None (accepted) or the problem. Seeded ``derive_seed(scene_seed, 9, first view)``.
+
+    Checking the views one by one cost a launch each (0.09 s of a 1.0 s image at 128x128, docs/DATASETS.md)."""
+    from mcdenoise.render.procedural import derive_seed
+    from mcdenoise.render.procedural.preview import image_stats, object_mask
+    from mcdenoise.render.procedural.views import set_camera, view_camera, view_motion_end
+    from mcdenoise.render.view_stack import iter_view_stack
+
+    cams = [view_camera(ps, np.random.default_rng(derive_seed(scene_seed, 3, v, 0))) for v in views]
+    seed = derive_seed(scene_seed, 9, views[0])
+    check, block = check_settings(cfg, _settings(cfg, seed, ps=ps, camera=cams[0], camera_end=view_motion_end(ps, cams[0])))
+    set_camera(ps.loaded, cams[0])
+    H, W = check.height, check.width
+    rad = np.zeros((len(views), H, W, 3), dtype=np.float64)
+    for i, _, rows, chunk in iter_view_stack(ps.loaded, check, cams, cams[0], seed=seed):
+        rad[i, rows] += chunk["radiance"].sum(axis=0, dtype=np.float64).transpose(1, 2, 0)
+    rad /= check.spp
+    out: dict[int, str | None] = {}
+    for i, v in enumerate(views):
+        set_camera(ps.loaded, cams[i])
+        out[v] = image_stats(rad[i], object_mask(ps.loaded, W, H), block).problem()
+    return out
 
 
 def _render_stack(cfg: DatasetConfig, ps: Any, scene_seed: int, group: list[int],
@@ -210,14 +243,14 @@ def render_procedural_image(
     if cfg.frames == 1:
         paths = image_paths(cfg, index)
 
-        def setup(v: int) -> tuple[np.ndarray, Any, dict[str, Any]]:
-            """View ``v``'s camera (checked), render settings and meta."""
-            tv = time.perf_counter()
+        def setup(v: int, first: str | None = "unchecked", shared: float = 0.0) -> tuple[np.ndarray, Any, dict[str, Any]]:
+            """View ``v``'s camera (checked; ``first`` and ``shared`` seconds: its stacked check), render settings and meta."""
+            tv = time.perf_counter() - shared
             rejected: list[str] = []
             if v == 0:
                 c2w, settings = np.asarray(ps.camera_to_world), view0(ps)
             else:
-                c2w, settings = _view(cfg, ps, scene_seed, v, rejected)
+                c2w, settings = _view(cfg, ps, scene_seed, v, rejected, first)
             view_meta = dict(meta)
             if cfg.views > 1:
                 view_meta["view"] = {"index": v, "views": cfg.views, "rejected_cameras": rejected,
@@ -233,7 +266,14 @@ def render_procedural_image(
         for group in view_groups(cfg):
             if not any(paths[v] in todo for v in group):
                 continue
-            views = {v: setup(v) for v in group}
+            checked: dict[int, str | None] = {}
+            shared = 0.0
+            later = [v for v in group if v > 0]
+            if stacked(cfg) and later:
+                t = time.perf_counter()
+                checked = _stacked_checks(cfg, ps, scene_seed, later)
+                shared = (time.perf_counter() - t) / len(later)
+            views = {v: setup(v, checked.get(v, "unchecked"), shared if v in checked else 0.0) for v in group}
             inputs = _render_stack(cfg, ps, scene_seed, group, views) if stacked(cfg) else {}
             for v in group:
                 if paths[v] not in todo:

@@ -12,7 +12,7 @@ from mcdenoise.render._mitsuba import mitsuba
 from mcdenoise.render.procedural.loading import load_procedural
 from mcdenoise.render.procedural.scene import ProceduralScene
 
-__all__ = ["PREVIEW_SIZE", "PREVIEW_SPP", "PreviewStats", "preview_stats"]
+__all__ = ["PREVIEW_SIZE", "PREVIEW_SPP", "PreviewStats", "image_stats", "object_mask", "preview_stats"]
 
 
 #: Preview size (pixels on the long side) and samples per pixel of the standalone rejection check
@@ -96,12 +96,17 @@ def preview_stats(
         arrays, _ = render_samples(scene, settings, record_position=record_position)
     img = arrays["radiance"].mean(axis=0, dtype=np.float64).transpose(1, 2, 0)
     del arrays
+    return image_stats(img, _object_mask(mi, scene, settings.width, settings.height), block)
+
+
+def image_stats(img: np.ndarray, is_obj: np.ndarray, block: int = 1) -> PreviewStats:
+    """The check's statistics of a rendered image ``img`` (H, W, 3) with its object mask (H, W),
+    luminance measured on ``block`` x ``block`` pixel blocks (see :func:`preview_stats`)."""
     lum = luminance(img)
     if block > 1:
         hb, wb = lum.shape[0] // block, lum.shape[1] // block
         if hb and wb:
             lum = lum[: hb * block, : wb * block].reshape(hb, block, wb, block).mean(axis=(1, 3))
-    is_obj = _object_mask(mi, scene, settings.width, settings.height)
     finite = bool(np.isfinite(img).all())
     mean = float(lum.mean()) if finite else 0.0
     return PreviewStats(
@@ -111,6 +116,12 @@ def preview_stats(
         object_fraction=float(is_obj.mean()),
         finite=finite,
     )
+
+
+def object_mask(loaded: Any, width: int, height: int) -> np.ndarray:
+    """(height, width) bool: the pixel centre's ray first hits a random object or furniture, seen
+    from the loaded scene's sensor as posed now."""
+    return _object_mask(mitsuba(), loaded, width, height)
 
 
 def _object_mask(mi: Any, loaded: Any, width: int, height: int) -> np.ndarray:
