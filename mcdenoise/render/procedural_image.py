@@ -63,7 +63,8 @@ def _view(cfg: DatasetConfig, ps: Any, scene_seed: int, view: int, rejected: lis
     """Camera (4x4) and render settings of view ``view`` >= 1 of the drawn scene ``ps``.
 
     Camera ``attempt`` of the view is drawn from ``derive_seed(scene_seed, 3, view, attempt)``, so
-    a view never depends on which other views were rendered (shards, resume). Each is checked with
+    a view never depends on which other views were rendered (shards, resume; under generator 4 its
+    camera 0 is checked with its stack, which is fixed by the dataset's options). Each is checked with
     the same preview as the scene (on the loaded scene, same kernel); after VIEW_ATTEMPTS
     rejections the drawn camera is used with the view's own seed. ``first``: the verdict on camera 0
     when it was checked elsewhere (:func:`_stacked_checks`: None = accepted, or the problem).
