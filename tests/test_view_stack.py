@@ -171,3 +171,18 @@ def test_stacked_checks_judge_each_views_own_camera(mi) -> None:
         low = object_mask(ps.loaded, 32, 32).mean() < 0.08
         assert low == ("objects cover" in (verdicts[v] or "")), (v, verdicts[v])
     assert "objects cover" in (verdicts[5] or "")
+
+
+def test_a_stack_refuses_a_sampler_whose_lanes_are_ordered(mi) -> None:
+    """Catches: a stratified or multi-jittered sampler accepted by a stack, whose sample-major lane
+    order would hand each pixel another pixel's strata (the stack's samples must be interchangeable)."""
+    from mcdenoise.errors import SceneError
+    from mcdenoise.render import RenderSettings
+    from mcdenoise.render.view_stack import iter_view_stack
+
+    d = mi.load_dict({"type": "scene", "sensor": {"type": "perspective", "sampler": {"type": "stratified", "sample_count": 4},
+                                                   "film": {"type": "hdrfilm", "width": 8, "height": 8}},
+                      "s": {"type": "sphere"}})
+    st = RenderSettings(spp=4, ref_spp=0, width=8, height=8)
+    with pytest.raises(SceneError, match="independent"):
+        next(iter_view_stack(d, st, [np.eye(4)], np.eye(4), seed=1))

@@ -48,8 +48,9 @@ def render_reference(
     traced: Any = None
     if stack is not None:
         from mcdenoise.render._mitsuba import mitsuba
-        from mcdenoise.render.view_stack import view_transforms
+        from mcdenoise.render.view_stack import check_sampler, view_transforms
 
+        check_sampler(scene)
         V = len(stack[0])
         traced = (settings.height, mitsuba().Float(view_transforms(stack[1], stack[0])))
     H = settings.height * V  # the views' rows, stacked

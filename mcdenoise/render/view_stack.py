@@ -30,7 +30,7 @@ from mcdenoise.render.seeds import stream_seed
 from mcdenoise.render.settings import RenderSettings
 from mcdenoise.render.trace import _row_bands, _trace_chunk
 
-__all__ = ["iter_view_stack", "view_transforms"]
+__all__ = ["check_sampler", "iter_view_stack", "view_transforms"]
 
 
 def view_transforms(sensor_camera: np.ndarray, cameras: Sequence[np.ndarray]) -> np.ndarray:
@@ -54,6 +54,14 @@ def view_transforms(sensor_camera: np.ndarray, cameras: Sequence[np.ndarray]) ->
     return np.concatenate(out).astype(np.float32)
 
 
+def check_sampler(scene: Any) -> None:
+    """A stack orders its lanes (sample, row, column), which only a sampler whose lanes are
+    interchangeable accepts: Mitsuba's ``independent``. SceneError for any other."""
+    text = str(scene.sensors()[0].sampler())
+    if not text.startswith("IndependentSampler"):
+        raise SceneError(f"view stacks need the scene's sampler to be 'independent', not {text.split('[')[0]}")
+
+
 def iter_view_stack(
     scene: Any,
     settings: RenderSettings,
@@ -75,6 +83,7 @@ def iter_view_stack(
     if V < 1:
         raise SceneError("a view stack needs at least one camera")
     mats = mi.Float(view_transforms(sensor_camera, cameras))
+    check_sampler(scene)
     prep = _prepare(scene, settings, None)
     keep = set(settings.sample_channels())
     stack = (H, mats)
