@@ -29,15 +29,11 @@ def _moved(c: np.ndarray, dx: float, yaw: float) -> np.ndarray:
 
 def _stack(scene, settings, cams, seed=3):
     from mcdenoise.render.procedural.views import set_camera
-    from mcdenoise.render.view_stack import iter_view_stack
+    from mcdenoise.render.view_stack import render_view_stack
 
     base = _camera(scene)
     set_camera(scene, base)
-    out = [dict() for _ in cams]
-    for v, samples, rows, chunk in iter_view_stack(scene, settings, cams, base, seed=seed):
-        for k, a in chunk.items():
-            dst = out[v].setdefault(k, np.zeros((settings.spp, a.shape[1], settings.height, settings.width), np.float32))
-            dst[samples, :, rows] = a
+    out = render_view_stack(scene, settings, cams, base, seed=seed)
     assert all(np.isfinite(o["radiance"]).all() for o in out)
     return out
 

@@ -36,8 +36,6 @@ def check_settings(cfg: DatasetConfig, settings: Any, *, first_view: bool = Fals
     Measured (``bench_dataset.py --size 256 --spp 16 --views 16``): the check at the input's
     settings cost as much as the input itself (2.5-5.9 s per view); see docs/DATASETS.md.
     """
-    from dataclasses import replace
-
     spp = CHECK_SPP.get(cfg.generator)
     if spp is None or (first_view and cfg.generator < 4) or settings.spp <= spp:
         return settings, 1
@@ -128,21 +126,18 @@ def _stacked_checks(cfg: DatasetConfig, ps: Any, scene_seed: int, views: list[in
     from mcdenoise.render.procedural import derive_seed
     from mcdenoise.render.procedural.preview import image_stats, object_mask
     from mcdenoise.render.procedural.views import set_camera, view_camera, view_motion_end
-    from mcdenoise.render.view_stack import iter_view_stack
+    from mcdenoise.render.view_stack import render_view_stack
 
     cams = [view_camera(ps, np.random.default_rng(derive_seed(scene_seed, 3, v, 0))) for v in views]
     seed = derive_seed(scene_seed, 9, views[0])
     check, block = check_settings(cfg, _settings(cfg, seed, ps=ps, camera=cams[0], camera_end=view_motion_end(ps, cams[0])))
     set_camera(ps.loaded, cams[0])
-    H, W = check.height, check.width
-    rad = np.zeros((len(views), H, W, 3), dtype=np.float64)
-    for i, _, rows, chunk in iter_view_stack(ps.loaded, check, cams, cams[0], seed=seed):
-        rad[i, rows] += chunk["radiance"].sum(axis=0, dtype=np.float64).transpose(1, 2, 0)
-    rad /= check.spp
+    stack = render_view_stack(ps.loaded, check, cams, cams[0], seed=seed)
     out: dict[int, str | None] = {}
     for i, v in enumerate(views):
         set_camera(ps.loaded, cams[i])
-        out[v] = image_stats(rad[i], object_mask(ps.loaded, W, H), block).problem()
+        img = stack[i]["radiance"].mean(axis=0, dtype=np.float64).transpose(1, 2, 0)
+        out[v] = image_stats(img, object_mask(ps.loaded, check.width, check.height), block).problem()
     return out
 
 
@@ -152,26 +147,17 @@ def _render_stack(cfg: DatasetConfig, ps: Any, scene_seed: int, group: list[int]
 
     The sensor is posed at the group's first camera; the stack's seed (samples and slice times)
     is ``derive_seed(scene_seed, 4, first view)``. Each view's meta records the stack."""
-    from dataclasses import replace
-
     from mcdenoise.render.procedural import derive_seed
     from mcdenoise.render.procedural.views import set_camera
     from mcdenoise.render.reference import render_reference
-    from mcdenoise.render.view_stack import iter_view_stack
+    from mcdenoise.render.view_stack import render_view_stack
 
     first = views[group[0]]
     seed = derive_seed(scene_seed, 4, group[0])
     settings = replace(first[1], seed=seed)
     set_camera(ps.loaded, first[0])
-    S, H, W = settings.spp, settings.height, settings.width
-    out: dict[int, dict[str, np.ndarray]] = {v: {} for v in group}
     t0 = time.perf_counter()
-    for i, samples, rows, chunk in iter_view_stack(ps.loaded, settings, [views[v][0] for v in group], first[0], seed=seed):
-        dst = out[group[i]]
-        for k, a in chunk.items():
-            if k not in dst:
-                dst[k] = np.zeros((S, a.shape[1], H, W), dtype=np.float32)
-            dst[k][samples, :, rows] = a
+    out = dict(zip(group, render_view_stack(ps.loaded, settings, [views[v][0] for v in group], first[0], seed=seed)))
     seconds = round(time.perf_counter() - t0, 3)
     ref_seconds = 0.0
     if settings.ref_spp > 0:

@@ -30,7 +30,7 @@ from mcdenoise.render.seeds import stream_seed
 from mcdenoise.render.settings import RenderSettings
 from mcdenoise.render.trace import _row_bands, _trace_chunk
 
-__all__ = ["check_sampler", "iter_view_stack", "view_transforms"]
+__all__ = ["check_sampler", "iter_view_stack", "render_view_stack", "view_transforms"]
 
 
 def view_transforms(sensor_camera: np.ndarray, cameras: Sequence[np.ndarray]) -> np.ndarray:
@@ -117,3 +117,23 @@ def iter_view_stack(
                         yield v, slice(si, si + 1), vrows, chunk
     finally:
         _restore(scene, prep)
+
+
+def render_view_stack(
+    scene: Any,
+    settings: RenderSettings,
+    cameras: Sequence[np.ndarray],
+    sensor_camera: np.ndarray,
+    *,
+    seed: int,
+) -> list[dict[str, np.ndarray]]:
+    """:func:`iter_view_stack` gathered: per view, name -> (S, C, H, W) float32 (in memory: the
+    caller bounds the stack, e.g. ``procedural_image.STACK_BYTES``)."""
+    S, H, W = settings.spp, settings.height, settings.width
+    out: list[dict[str, np.ndarray]] = [{} for _ in cameras]
+    for v, samples, rows, chunk in iter_view_stack(scene, settings, cameras, sensor_camera, seed=seed):
+        for k, a in chunk.items():
+            if k not in out[v]:
+                out[v][k] = np.zeros((S, a.shape[1], H, W), dtype=np.float32)
+            out[v][k][samples, :, rows] = a
+    return out

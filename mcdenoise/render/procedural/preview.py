@@ -84,14 +84,11 @@ def preview_stats(
     if scene is None:
         scene = load_procedural(ps, settings.width, settings.height)
     if stack_camera is not None:
-        from mcdenoise.render.view_stack import iter_view_stack
+        from mcdenoise.render.view_stack import render_view_stack
 
         # The stack keeps every input channel (the kept outputs are part of the kernel, which
         # the inputs then reuse); only the radiance is read.
-        rad = np.zeros((settings.spp, 3, settings.height, settings.width), dtype=np.float32)
-        for _, samples, rows, chunk in iter_view_stack(scene, settings, [stack_camera], stack_camera, seed=settings.seed):
-            rad[samples, :, rows] = chunk["radiance"]
-        arrays = {"radiance": rad}
+        arrays = render_view_stack(scene, settings, [stack_camera], stack_camera, seed=settings.seed)[0]
     else:
         arrays, _ = render_samples(scene, settings, record_position=record_position)
     img = arrays["radiance"].mean(axis=0, dtype=np.float64).transpose(1, 2, 0)
