@@ -25,7 +25,7 @@ def main() -> None:
     p.add_argument("--tile", type=int, default=128)
     p.add_argument("--cols", type=int, default=8)
     a = p.parse_args()
-    paths = sorted(a.dataset.glob("proc_*/view_000/noisy.exr"))[: a.count]
+    paths = (sorted(a.dataset.glob("proc_*/view_000/noisy.exr")) or sorted(a.dataset.glob("proc_*/noisy.exr")))[: a.count]
     tiles = []
     for path in paths:
         x = np.asarray(read_exr(path)["radiance"], np.float32).transpose(1, 2, 0)

@@ -53,9 +53,10 @@ def add_parser(p: argparse.ArgumentParser) -> None:
                         "scene (default 1)")
     add_variant_argument(p)
     p.add_argument("--kind", choices=("indoor", "outdoor"), default=None, help="only this kind of scene (default both)")
-    p.add_argument("--world", choices=("classic", "rich"), default="classic",
-                   help="procedural world: classic, or rich (window-lit rooms, small bright emitters, night, "
-                        "exposure over 2.3 decades; docs/DATASETS.md) (default classic)")
+    p.add_argument("--world", choices=("classic", "rich", "detailed"), default="classic",
+                   help="procedural world: classic; rich (window-lit rooms, small bright emitters, night, "
+                        "exposure over 2.3 decades); detailed (rich plus fine surface detail: tiles, print, fabric, "
+                        "speckle, wood grain, cobbles, varying roughness; docs/DATASETS.md) (default classic)")
     p.add_argument("--generator", type=int, default=None,
                    help="scene pipeline version (default: the latest; a dataset made by an older one names it "
                         "in dataset.json, and its recipe states it)")

@@ -11,6 +11,7 @@ import numpy as np
 
 from mcdenoise.errors import SceneError
 from mcdenoise.render.procedural.camera import _sensor
+from mcdenoise.render.procedural.detail import Detailer
 from mcdenoise.render.procedural.indoor import _indoor
 from mcdenoise.render.procedural.objects import MAX_OBJECTS, MIN_OBJECTS, _Builder
 from mcdenoise.render.procedural.outdoor import _outdoor
@@ -29,8 +30,9 @@ def _draw(
     seed: int, kind: str | None, width: int, height: int, objects: tuple[int, int] = (MIN_OBJECTS, MAX_OBJECTS),
     world: str = "classic",
 ) -> ProceduralScene:
-    """Draw one scene from ``seed`` without any check; ``world`` is ``classic`` or ``rich``
-    (:mod:`~mcdenoise.render.procedural.rich`, drawn from a stream of its own)."""
+    """Draw one scene from ``seed`` without any check; ``world`` is ``classic``, ``rich``
+    (:mod:`~mcdenoise.render.procedural.rich`) or ``detailed`` (rich plus
+    :mod:`~mcdenoise.render.procedural.detail`), each addition drawn from a stream of its own."""
     if world not in WORLDS:
         raise SceneError(f"unknown procedural world {world!r}; worlds: {', '.join(WORLDS)}")
     rng = np.random.default_rng(seed)
@@ -41,11 +43,16 @@ def _draw(
     if not 1 <= lo <= hi <= 1000:
         raise SceneError(f"procedural scene: object count range {lo}-{hi} must satisfy 1 <= min <= max <= 1000")
     b = _Builder(rng)
+    detailer = Detailer(np.random.default_rng(derive_seed(seed, 0xDE7A))) if world == "detailed" else None
+    b.detail = detailer
     n_objects = int(rng.integers(lo, hi + 1))
     dof = bool(rng.random() < 0.5)
     motion = bool(rng.random() < 0.5)
     cam = (_indoor if kind == "indoor" else _outdoor)(b, n_objects)
-    rich = enrich(b, kind, np.random.default_rng(derive_seed(seed, 0x51C4))) if world == "rich" else None
+    rich = enrich(b, kind, np.random.default_rng(derive_seed(seed, 0x51C4))) if world != "classic" else None
+    if detailer is not None:  # its own stream, meshes first (as drawn): rich draws stay as they are
+        assert rich is not None
+        rich["detail"] = detailer.finish(b.scene)
     sensor, aperture, focus = _sensor(b, cam, width, height, dof)
     cam_close = None
     obj_motion: dict[str, list[float]] = {}

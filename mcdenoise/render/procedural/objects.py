@@ -8,7 +8,7 @@ random material.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -46,6 +46,8 @@ class _Builder:
     emitters: list[str] = field(default_factory=list)
     extents: dict[str, tuple[np.ndarray, float]] = field(default_factory=dict)  # id -> centre, radius
     room: tuple[float, float, float] | None = None  # indoor: half width (x), half depth (z), height
+    #: called on a procedural mesh's BSDF dict before the mesh loads it (the detailed world's pass)
+    detail: Callable[[dict], None] | None = None
 
     def add(self, key: str, value: Any) -> None:
         if key in self.scene:
@@ -53,12 +55,19 @@ class _Builder:
         self.scene[key] = value
 
 
+def _mesh(b: _Builder, name: str, arrays: pm.MeshArrays, bsdf: dict, to_world: np.ndarray | None = None) -> Any:
+    """A procedural mesh with ``bsdf``, after the builder's detail pass (if any) has seen it."""
+    if b.detail is not None:
+        b.detail(bsdf)
+    return pm.to_mitsuba_mesh(name, arrays, bsdf=bsdf, to_world=to_world)
+
+
 def _add_object(b: _Builder, oid: str, shape: str, to_world: np.ndarray, bsdf: dict, radius: float) -> None:
     """Add a shape of kind ``shape`` whose unit-size version is mapped by ``to_world``."""
     b.shapes[shape] = b.shapes.get(shape, 0) + 1
     if shape in pm.MESH_BUILDERS:
         arrays = pm.MESH_BUILDERS[shape](b.rng)
-        b.add(oid, pm.to_mitsuba_mesh(oid, arrays, bsdf=bsdf, to_world=to_world))
+        b.add(oid, _mesh(b, oid, arrays, bsdf, to_world))
     else:
         # Built-ins have unit size already: sphere radius 1, cube [-1, 1]^3, cylinder r=1 along z.
         d: dict = {"type": shape, "id": oid, "to_world": _xform(to_world), "bsdf": bsdf}

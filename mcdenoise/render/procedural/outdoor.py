@@ -12,7 +12,7 @@ from mcdenoise.render.procedural import meshes as pm
 from mcdenoise.render.procedural import textures as pt
 from mcdenoise.render.procedural.camera import _Camera, _roll_up
 from mcdenoise.render.procedural.materials import _bitmap, _material
-from mcdenoise.render.procedural.objects import MAX_OBJECTS, _Builder, _random_object
+from mcdenoise.render.procedural.objects import MAX_OBJECTS, _Builder, _mesh, _random_object
 from mcdenoise.render.procedural.seeds import _loguniform
 from mcdenoise.render.procedural.transforms import _rotate, _scale, _xform
 
@@ -39,7 +39,7 @@ def _outdoor(b: _Builder, n_objects: int) -> _Camera:
         b.add("ground", {"type": "rectangle", "id": "ground", "to_world": _xform(_rotate([1, 0, 0], -np.pi / 2) @ _scale([200, 200, 1])), "bsdf": ground_mat})
     else:
         arrays = pm.terrain(rng, size=120.0, height=rng.uniform(2.0, 15.0))
-        b.add("ground", pm.to_mitsuba_mesh("ground", arrays, bsdf=ground_mat))
+        b.add("ground", _mesh(b, "ground", arrays, ground_mat))
 
     if rng.random() < 0.4:
         elev = rng.uniform(0.05, 1.3)
