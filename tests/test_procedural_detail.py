@@ -58,3 +58,16 @@ def test_detailed_world_keeps_the_rich_draw_and_adds_detail() -> None:
     assert sum(totals.get(k, 0) for k in DETAIL_KINDS) >= 12 * 3, totals
     assert totals.get("varying_roughness", 0) > 0 and totals.get("detail_bump", 0) > 0, totals
     assert EXPOSURE_RANGE["detailed"] == EXPOSURE_RANGE["rich"]
+
+
+def test_the_dataset_command_offers_every_world() -> None:
+    """Catches a world added to the generator but not to ``mcdenoise dataset --world`` (or the reverse)."""
+    import argparse
+
+    from mcdenoise.cli.dataset import add_parser
+    from mcdenoise.render.procedural.rich import WORLDS
+
+    p = argparse.ArgumentParser()
+    add_parser(p)
+    action = next(a for a in p._actions if "--world" in a.option_strings)
+    assert tuple(action.choices) == WORLDS
