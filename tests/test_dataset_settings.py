@@ -135,6 +135,15 @@ def test_card_dataset_command_states_the_variant(tmp_path: Path) -> None:
     assert _parse(dataset_command(old)).variant == "llvm_ad_rgb"
 
 
+def test_card_dataset_command_names_the_scene_pipeline(tmp_path: Path) -> None:
+    """Bug caught: a dataset of the current pipeline got a recipe without ``--generator``, which a
+    later default (a new pipeline) would render differently."""
+    from mcdenoise.render.dataset_config import GENERATOR
+
+    root = _dataset(tmp_path / "d", DatasetConfig(count=3, spp=4, variant="llvm_ad_rgb"))
+    assert _parse(dataset_command(root)).generator == GENERATOR
+
+
 def test_shipped_cards_state_the_variant_they_were_rendered_with() -> None:
     """Bug caught (issue 18): the shipped cards' dataset commands omitted the variant (they were
     rendered on a CPU: llvm_ad_rgb, what `--variant auto` picks without a GPU)."""

@@ -65,10 +65,8 @@ def dataset_command(data_dir: str | Path) -> str:
         raise WeightsError(f"{p}: records no Mitsuba variant and no image names one: the dataset command "
                            "cannot be stated")
     args += ["--variant", variant]
-    from mcdenoise.render.dataset_config import GENERATOR
-
-    if d.get("generator", 1) != GENERATOR:  # an older scene pipeline: the recipe must name it
-        args += ["--generator", str(d.get("generator", 1))]
+    # Always named: the default moves when a new scene pipeline lands, and the recipe must not.
+    args += ["--generator", str(d.get("generator", 1))]
     if d.get("views", 1) != 1:
         args += ["--views", str(d["views"])]
     if d.get("frames", 1) != 1:
