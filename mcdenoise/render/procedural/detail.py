@@ -11,9 +11,10 @@ What the pass does, from a random stream of its own (classic and rich draws stay
 
 * replaces the colour texture of many BSDFs (walls, floors, furniture, objects) by one of
   :data:`DETAIL_KINDS`, 128-256 texels, repeated by a random UV scale;
-* makes the roughness of some glossy metals and principled materials vary with the same pattern
-  (polished tiles, rough grout; smudged metal), since glossiness that changes per pixel is what a
-  specular kernel must not average away;
+* makes the roughness of half of the principled materials it details vary with the same pattern
+  (polished tiles in rough grout, or the reverse), since glossiness that changes per pixel is what
+  a specular kernel must not average away (conductors have no colour parameter and are left as
+  drawn);
 * adds a bump map that follows the pattern to some (grout and mortar recessed, fabric threads).
 
 Every image is tileable, float32, and its reflectances lie in [0.02, 0.92].
@@ -250,7 +251,9 @@ class Detailer:
         to_uv = _uv(rng, 0.7, 8.0)
         bsdf[key] = {"type": "bitmap", "bitmap": _bitmap(rgb), "to_uv": to_uv, "raw": True, "filter_type": "bilinear"}
         self._count(kind)
-        rough_key = {"roughconductor": "alpha", "principled": "roughness"}.get(bsdf["type"])
+        # Only principled BSDFs have both a colour and a roughness texture slot here (the metals
+        # carry no colour parameter, so they never reach this point).
+        rough_key = {"principled": "roughness"}.get(bsdf["type"])
         if rough_key and rng.random() < 0.5:
             a, b = sorted(_loguniform(rng, 0.02, 0.7) for _ in range(2))
             t = h if rng.random() < 0.5 else 1 - h  # tiles glossy and grout rough, or the reverse
