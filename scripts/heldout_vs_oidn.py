@@ -3,6 +3,10 @@ rich_ref 1-3 and of both Cycles sets (45 images per spp), never the third-party 
 
     .venv/bin/python scripts/heldout_vs_oidn.py MODEL [MODEL ...] [--roots DATASET ...]
 
+With ``--emitter-oidn R ...`` each model also gets a row per R with plain OIDN high written at
+every emitter pixel (an albedo above 1, Cycles' convention) and within R pixels of one: the rule
+tried for the combiner in docs/models/combine.md ("Tried, not kept").
+
 Per spp (4, 8, 16; a pixel-only Cycles image counts at its own spp) and model: the mean,
 geometric mean, median and worst ratio of relMSE to OIDN high's on the same image, how many
 images it beats OIDN on and is within 5% of it, and the mean PSNR gain.
@@ -25,8 +29,20 @@ ap.add_argument("models", nargs="+")
 ap.add_argument("--roots", nargs="+", type=Path, help="datasets (their val split) or image folders; default: the six above",
                 default=[Path(p) for p in ("data/rich_val", "data/rich_ref", "data/rich_ref2", "data/rich_ref3",
                                            "data/cycles_ref", "data/cycles_ref2")])
+ap.add_argument("--emitter-oidn", nargs="+", type=int, default=[], metavar="R",
+                help="also score each model with plain OIDN at and within R px of emitter pixels")
 args = ap.parse_args()
 models = args.models
+rows = models + [f"{m}+emitter_oidn{r}" for m in models for r in args.emitter_oidn]
+
+
+def _near_emitter(albedo: np.ndarray, r: int) -> np.ndarray:
+    """(H, W) bool: pixels within ``r`` (Chebyshev) of one whose albedo exceeds 1 in any channel."""
+    import torch
+    import torch.nn.functional as F
+
+    m = torch.from_numpy(np.ascontiguousarray(albedo.max(axis=0) > 1))[None, None].float()
+    return (F.max_pool2d(m, 2 * r + 1, stride=1, padding=r)[0, 0] > 0).numpy()
 folders = []
 for root in args.roots:
     if (root / "manifest.json").is_file():
@@ -34,7 +50,7 @@ for root in args.roots:
     else:
         folders += sorted(m.parent for m in root.rglob("meta.json") if (m.parent / "reference.exr").is_file())
 for spp in (4, 8, 16):
-    R = {m: [] for m in models}; D = {m: [] for m in models}
+    R = {m: [] for m in rows}; D = {m: [] for m in rows}
     for f in folders:
         im = ImageFolder(f)
         if im.samples is None:
@@ -49,6 +65,10 @@ for spp in (4, 8, 16):
         for m in models:
             out = np.asarray(mcdenoise.denoise(px["radiance"], px["albedo"], px["normal"], model=m))
             R[m].append(relmse(out, ref) / r0); D[m].append(psnr(out, ref) - p0)
-    for m in models:
+            for rad in args.emitter_oidn:
+                ruled = np.where(_near_emitter(px["albedo"], rad)[None], o, out)
+                R[f"{m}+emitter_oidn{rad}"].append(relmse(ruled, ref) / r0)
+                D[f"{m}+emitter_oidn{rad}"].append(psnr(ruled, ref) - p0)
+    for m in rows:
         r = np.array(R[m])
         print(f"spp {spp:2d} {m[-32:]:<32} n={len(r)} mean {r.mean():.3f} geo {np.exp(np.log(r).mean()):.3f} median {np.median(r):.3f} worst {r.max():.3f} better {(r<1).sum()}/{len(r)} within5% {(r<=1.05).sum()} dPSNR {np.mean(D[m]):+.2f}", flush=True)

@@ -225,8 +225,8 @@ class Detailer:
     def __init__(self, rng: np.random.Generator, *, p_colour: float = 0.55) -> None:
         self.rng, self.p_colour = rng, p_colour
         self.added: dict[str, int] = {}
-        self._seen: set[int] = set()
-        self._held: list[dict] = []  # keeps every seen dict alive, so that no id() is reused
+        # id -> the dict itself: holding every seen dict keeps its id() from being reused.
+        self._seen: dict[int, dict] = {}
         self._kinds = list(DETAIL_KINDS)
         w = np.array([DETAIL_KINDS[k][1] for k in self._kinds])
         self._p = w / w.sum()
@@ -240,8 +240,7 @@ class Detailer:
             bsdf = bsdf["nested"]
         if id(bsdf) in self._seen:
             return
-        self._seen.add(id(bsdf))
-        self._held.append(bsdf)
+        self._seen[id(bsdf)] = bsdf
         rng = self.rng
         key = next((k for k in _COLOUR_KEYS if k in bsdf), None)
         if key is None or rng.random() >= self.p_colour:
@@ -267,8 +266,7 @@ class Detailer:
             bsdf.clear()  # in place: pieces of one wall share this dict
             bsdf.update(type="bumpmap", arg={"type": "bitmap", "bitmap": _bitmap(h[..., None]), "raw": True, "to_uv": to_uv},
                         scale=float(_loguniform(rng, 0.02, 0.3)), nested=inner)
-            self._seen.add(id(inner))
-            self._held.append(inner)
+            self._seen[id(inner)] = inner
             self._count("detail_bump")
 
     def finish(self, scene: dict) -> dict[str, int]:

@@ -33,7 +33,8 @@ __all__ = ["WORLDS", "EXPOSURE_RANGE", "enrich"]
 WORLDS = ("classic", "rich", "detailed")
 
 #: Median luminance range of the exposure fix, per world.
-EXPOSURE_RANGE: dict[str, tuple[float, float]] = {"classic": (0.05, 0.5), "rich": (0.01, 2.0), "detailed": (0.01, 2.0)}
+EXPOSURE_RANGE: dict[str, tuple[float, float]] = {"classic": (0.05, 0.5), "rich": (0.01, 2.0)}
+EXPOSURE_RANGE["detailed"] = EXPOSURE_RANGE["rich"]  # the same scenes underneath
 
 #: Walls as the classic indoor layout builds them: (centre as a function of the room, yaw).
 _WALL_YAW = (0.0, np.pi, np.pi / 2, -np.pi / 2)
