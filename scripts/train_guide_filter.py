@@ -2,7 +2,8 @@
 
 Inputs: the mean albedo and normal of the first ``k`` samples of each image (``k`` drawn from
 ``--spp``), targets: what OIDN's albedo and normal filters make of those very guides. No
-reference is needed, so any rendered dataset serves; the validation images are never trained on.
+reference is needed, so any rendered dataset serves; the validation images are never trained on
+(a dataset with a manifest gives its train split to ``--data`` and its val split to ``--val``).
 Resumable: ``OUT/state.pt`` (weights-only load) holds the weights, optimiser and step; the pairs are
 cached in ``OUT/pairs.npz`` (deterministic from the arguments).
 
@@ -29,7 +30,13 @@ from guide_filter_net import GuideFilter
 from mcdenoise.eval.oidn import oidn_prefilter
 
 
-def image_folders(root: Path) -> list[Path]:
+def image_folders(root: Path, split: str | None = None) -> list[Path]:
+    """Image folders with samples under ``root``; only those of ``split`` where the dataset's
+    manifest names splits (so a dataset's val images can validate without being trained on)."""
+    man = root / "manifest.json"
+    if split is not None and man.is_file():
+        rows = json.loads(man.read_text())["images"]
+        return sorted(root / r["path"] for r in rows if r.get("split") == split and (root / r["path"] / "samples.bin").is_file())
     return sorted(m.parent for m in root.rglob("meta.json") if (m.parent / "samples.bin").is_file())
 
 
@@ -100,9 +107,9 @@ def main() -> None:
         xs, ys = [z[f"x{i}"] for i in range(n)], [z[f"y{i}"] for i in range(n)]
         vx, vy = [z[f"vx{i}"] for i in range(int(z["vn"]))], [z[f"vy{i}"] for i in range(int(z["vn"]))]
     else:
-        folders = [p for d in a.data for p in image_folders(Path(d))]
+        folders = [p for d in a.data for p in image_folders(Path(d), "train")]
         xs, ys = make_pairs(folders, a.spp, a.per_image, a.seed)
-        vx, vy = make_pairs(image_folders(Path(a.val)), [2, 8], 2, a.seed + 1)
+        vx, vy = make_pairs(image_folders(Path(a.val), "val"), [2, 8], 2, a.seed + 1)
         tmp = out / ".pairs.tmp.npz"
         np.savez(tmp, n=len(xs), vn=len(vx), **{f"x{i}": x for i, x in enumerate(xs)}, **{f"y{i}": y for i, y in enumerate(ys)},
                  **{f"vx{i}": x for i, x in enumerate(vx)}, **{f"vy{i}": y for i, y in enumerate(vy)})
