@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from mcdenoise.data.channels import num_components
+from mcdenoise.data.channels import exposure_power, num_components
 from mcdenoise.data.dataset import write_manifest
 from mcdenoise.data.format import ImageMeta, pixel_stats, read_image, write_image
 from mcdenoise.data.sampler import CropSampler, importance_map, window_scores
@@ -127,6 +127,43 @@ def test_sample_models_get_one_spp_per_batch_in_range(ds: Path) -> None:
     assert counts <= set(range(2, 9)) and len(counts) >= 5
 
 
+@pytest.mark.parametrize("name", ["sbmc", "kpcn"])
+def test_exposure_scales_a_crop_and_its_target_together(ds: Path, name: str) -> None:
+    """Bugs caught: a target left at the rendered exposure while its inputs move (the network would
+    learn to change brightness), variances scaled by k instead of k**2, albedo, normals or depth
+    scaled as if they were radiance, factors outside the range, and exposure augmentation that
+    draws from the crop's stream when it is off (every earlier run would see other crops)."""
+    model = build_model(name, "small")
+    base = DataConfig(crop=8, batch=3, workers=0, spp_range=(4, 4))
+    plain = batch_source(ds, model, base)
+    lit = batch_source(ds, model, DataConfig(crop=8, batch=3, workers=0, spp_range=(4, 4), exposure=(0.1, 10.0)))
+    ks = []
+    for t in range(6):
+        a, b = plain[t], lit[t]
+        assert a.keys() == b.keys()
+        k = (b["target"].flatten(1) / a["target"].flatten(1))[:, 0]
+        ks += k.tolist()
+        for key in a:
+            if key == "spp":
+                continue
+            p = exposure_power("radiance" if key == "target" else key.removeprefix("target:"))
+            shape = (-1,) + (1,) * (a[key].dim() - 1)
+            torch.testing.assert_close(b[key], a[key] * k.view(shape) ** p, rtol=1e-5, atol=0, msg=key)
+    ks = np.array(ks)
+    assert ks.min() >= 0.1 * (1 - 1e-6) and ks.max() <= 10 * (1 + 1e-6)
+    assert ks.min() < 0.5 and ks.max() > 2  # drawn over the range, not a constant
+    # Off (the default), the crops are those of a run without the option, bit for bit.
+    _eq(plain[2], batch_source(ds, model, DataConfig(crop=8, batch=3, workers=0, spp_range=(4, 4), exposure=None))[2])
+
+
+def test_exposure_power_of_the_channels() -> None:
+    """Bug caught: a radiance-like channel (or an OIDN output fed to the combiner) left unscaled,
+    or a guide scaled, by the exposure augmentation."""
+    assert [exposure_power(c) for c in ("radiance", "diffuse", "specular", "oidn", "oidn_pf")] == [1] * 5
+    assert exposure_power("radiance_variance") == exposure_power("specular_variance") == 2
+    assert [exposure_power(c) for c in ("albedo", "normal", "depth", "albedo_variance", "subpixel")] == [0] * 5
+
+
 def test_pixel_inputs_recomputed_from_the_drawn_subset(ds: Path) -> None:
     """Bug caught: pixel models fed the full-spp noisy.exr although spp_range asked for fewer samples."""
     model = build_model("kpcn", "small")
@@ -214,6 +251,11 @@ def test_data_config_rejects_bad_settings() -> None:
     with pytest.raises(ValueError, match="spp_range"):
         DataConfig(spp_range=(3, 2))
     assert DataConfig(spp_range=[2, 4]).spp_range == (2, 4)  # JSON lists become tuples
+    with pytest.raises(ValueError, match="exposure"):
+        DataConfig(exposure=(0.0, 2.0))
+    with pytest.raises(ValueError, match="exposure"):
+        DataConfig(exposure=(4.0, 2.0))
+    assert DataConfig(exposure=[0.5, 2]).exposure == (0.5, 2.0)
 
 
 def test_several_datasets_train_on_their_union(ds: Path, tmp_path: Path) -> None:

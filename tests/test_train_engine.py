@@ -222,6 +222,23 @@ def test_resume_refuses_changed_settings() -> None:
         check_resume_config(a, dict(b, manifest_sha256="y"), Path("run/config.json"))
 
 
+def test_exposure_setting_round_trips_and_guards_a_resume() -> None:
+    """Catches the exposure range lost in config.json (a resumed run would train without it), a
+    resume that changes it silently, and runs from before the option refusing to resume."""
+    import json
+
+    cfg = TrainConfig(model="kpcn", data="d", exposure=(0.1, 10.0))
+    back = TrainConfig.from_json(json.loads(json.dumps(cfg.to_json())))
+    assert back.exposure == (0.1, 10.0) and back == cfg
+    doc = lambda c: {"train": c.to_json(), "manifest_sha256": "x", "model_config": {}}  # noqa: E731
+    with pytest.raises(ConfigError, match="exposure"):
+        check_resume_config(doc(cfg), doc(TrainConfig(model="kpcn", data="d")), Path("run/config.json"))
+    old = TrainConfig(model="kpcn", data="d").to_json()
+    del old["exposure"]  # a config.json written before the option existed
+    check_resume_config({"train": old, "manifest_sha256": "x", "model_config": {}},
+                        doc(TrainConfig(model="kpcn", data="d")), Path("run/config.json"))
+
+
 def test_cli_help_names_every_loss() -> None:
     """Catches a loss added to the registry but missing from `mcdenoise train --help` (the parser
     lists them by hand so that building it never imports torch)."""

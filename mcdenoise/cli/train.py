@@ -50,6 +50,8 @@ def add_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--sampling", choices=("importance", "uniform"), help="crop placement (default importance)")
     p.add_argument("--spp", type=int, nargs=2, metavar=("LO", "HI"), help="random input spp range (default 2 8 for sample models)")
     p.add_argument("--no-augment", action="store_true", help="no flips or rotations")
+    p.add_argument("--exposure", type=float, nargs=2, metavar=("LO", "HI"),
+                   help="exposure augmentation: each crop times a factor log-uniform in LO..HI (default off)")
     p.add_argument("--warmup", type=float, help="fraction of steps with linear warm-up (default 0.02)")
     p.add_argument("--schedule", choices=("cosine", "step", "constant"), help="decay after warm-up (default cosine)")
     p.add_argument("--clip-grad", type=float, help="clip the gradient norm (default 1.0; 0 = off)")
@@ -85,6 +87,8 @@ def config_from_args(args: argparse.Namespace):  # -> TrainConfig
         given["model_overrides"] = args.model_overrides
     if args.spp is not None:
         given["spp_range"] = tuple(args.spp)
+    if args.exposure is not None:
+        given["exposure"] = tuple(args.exposure)
     if args.no_augment:
         given["augment"] = False
     if args.no_progress:

@@ -21,6 +21,8 @@ __all__ = [
     "variance_name",
     "is_variance_name",
     "base_name",
+    "RADIOMETRIC",
+    "exposure_power",
 ]
 
 RGB = ("R", "G", "B")
@@ -94,6 +96,19 @@ def is_variance_name(name: str) -> bool:
 
 def base_name(name: str) -> str:
     return name[: -len("_variance")] if is_variance_name(name) else name
+
+
+#: Channels in units of radiance: a change of exposure multiplies them (OIDN's outputs included,
+#: which follow their input up to OIDN's own rounding).
+RADIOMETRIC = frozenset({"radiance", "diffuse", "specular", "oidn", "oidn_pf"})
+
+
+def exposure_power(name: str) -> int:
+    """How ``name`` scales with exposure ``k``: ``k ** p`` (1 for radiance-like channels, 2 for their
+    variances, 0 for albedo, normals, depth and every other channel)."""
+    if base_name(name) not in RADIOMETRIC:
+        return 0
+    return 2 if is_variance_name(name) else 1
 
 
 def _builtin() -> None:

@@ -30,6 +30,10 @@ Mitsuba's camera space has ``+X`` left and ``+Y`` up, i.e. both axes opposite to
   spread over the 8 orientations either way.
 * variances of world vectors under ``W``: ``Var((W n)_i) ~ sum_j W_ij^2 Var(n_j)`` (component
   covariances are not stored); their mean over components, the only form KPCN reads, is exact.
+
+:func:`scale_exposure` is the other augmentation: one exposure factor for a whole crop, inputs and
+targets alike, so a network sees each picture at many brightnesses (the same scene lit more or
+less strongly renders exactly that, sample for sample).
 """
 
 from __future__ import annotations
@@ -39,9 +43,10 @@ from typing import Any
 
 import numpy as np
 
-from mcdenoise.data.channels import base_name, is_variance_name
+from mcdenoise.data.channels import base_name, exposure_power, is_variance_name
 
-__all__ = ["NUM_OPS", "film_matrix", "spatial", "world_matrix", "augment_arrays", "camera_frame"]
+__all__ = ["NUM_OPS", "film_matrix", "spatial", "world_matrix", "augment_arrays", "camera_frame", "scale_exposure",
+           "draw_exposure"]
 
 NUM_OPS = 8
 _FLIP = np.array([[-1, 0], [0, 1]], np.int64)
@@ -128,3 +133,19 @@ def augment_arrays(arrays: Mapping[str, np.ndarray], op: int, camera_to_world: n
         else:
             out[name] = spatial(arr, op)
     return out
+
+
+def scale_exposure(arrays: Mapping[str, np.ndarray], k: float) -> dict[str, np.ndarray]:
+    """The crop at exposure ``k``: radiance-like channels times ``k``, their variances times ``k**2``
+    (:func:`~mcdenoise.data.channels.exposure_power`), every other channel unchanged."""
+    out: dict[str, np.ndarray] = {}
+    for name, arr in arrays.items():
+        p = exposure_power(name)
+        out[name] = arr if p == 0 else (arr * np.float32(k) ** p).astype(arr.dtype, copy=False)
+    return out
+
+
+def draw_exposure(rng: np.random.Generator, bounds: tuple[float, float]) -> float:
+    """An exposure factor log-uniform in ``bounds = (lo, hi)``, ``0 < lo <= hi``."""
+    lo, hi = bounds
+    return float(np.exp(rng.uniform(np.log(lo), np.log(hi))))

@@ -117,6 +117,9 @@ class TrainConfig:
     noisy image for pixel models. The data side clips it to what the dataset holds."""
     augment: bool = True
     """Random flips and 90-degree rotations (normals and motion transformed with the image)."""
+    exposure: tuple[float, float] | None = None
+    """Exposure augmentation: each crop (inputs and target) times a factor log-uniform in
+    ``(lo, hi)``; None = as rendered."""
     seed: int = 0
     """Seeds the weights and every batch: batch t is a pure function of (seed, t)."""
     warmup: float = 0.02
@@ -191,12 +194,15 @@ class TrainConfig:
             raise ConfigError("warmup must be in [0, 1) and branch_fraction in [0, 1]")
         if self.spp_range is not None and not 1 <= self.spp_range[0] <= self.spp_range[1]:
             raise ConfigError(f"spp range {self.spp_range}: need 1 <= lo <= hi")
+        if self.exposure is not None and not 0 < self.exposure[0] <= self.exposure[1] < float("inf"):
+            raise ConfigError(f"exposure range {self.exposure}: need 0 < lo <= hi")
         if self.checkpoint_every < 1:
             raise ConfigError("checkpoint_every must be >= 1")
 
     def to_json(self) -> dict[str, Any]:
         d = dataclasses.asdict(self)
         d["spp_range"] = list(self.spp_range) if self.spp_range is not None else None
+        d["exposure"] = list(self.exposure) if self.exposure is not None else None
         # Tuples as lists, as they read back from config.json (a resume compares the two).
         d["model_overrides"] = json.loads(json.dumps(self.model_overrides))
         return d
@@ -207,6 +213,8 @@ class TrainConfig:
         c = cls(**{k: v for k, v in d.items() if k in known})
         if c.spp_range is not None:
             c.spp_range = (int(c.spp_range[0]), int(c.spp_range[1]))
+        if c.exposure is not None:
+            c.exposure = (float(c.exposure[0]), float(c.exposure[1]))
         return c
 
 

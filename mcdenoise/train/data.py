@@ -25,7 +25,7 @@ from mcdenoise.data.dataset import Dataset, dataset_dirs
 from mcdenoise.data.format import ImageFolder
 from mcdenoise.data.tensors import input_arrays
 from mcdenoise.data.sampler import SAMPLINGS, TARGETS, Crop, CropSampler
-from mcdenoise.train.augment import NUM_OPS, augment_arrays, camera_frame
+from mcdenoise.train.augment import NUM_OPS, augment_arrays, camera_frame, draw_exposure, scale_exposure
 
 __all__ = ["DataConfig", "training_batches", "validation_batches", "target_channels", "batch_source", "split_images"]
 
@@ -52,6 +52,9 @@ class DataConfig:
     """``"importance"`` (KPCN Sec. 5.1, toward noisy and detailed regions) or ``"uniform"``."""
     augment: bool = True
     """Random flips and quarter turns (:mod:`mcdenoise.train.augment`)."""
+    exposure: tuple[float, float] | None = None
+    """Each crop's radiance-like inputs and targets times one factor drawn log-uniformly in
+    ``(lo, hi)`` (variances by its square); None: as rendered."""
     workers: int = 2
     """DataLoader worker processes; 0 reads in the training process."""
     target: str = "reference"
@@ -77,6 +80,10 @@ class DataConfig:
             self.spp_range = (int(self.spp_range[0]), int(self.spp_range[1]))
             if not 1 <= self.spp_range[0] <= self.spp_range[1]:
                 raise ValueError(f"spp_range must be (lo, hi) with 1 <= lo <= hi, got {self.spp_range}")
+        if self.exposure is not None:
+            self.exposure = (float(self.exposure[0]), float(self.exposure[1]))
+            if not 0 < self.exposure[0] <= self.exposure[1] < float("inf"):
+                raise ValueError(f"exposure must be (lo, hi) with 0 < lo <= hi, got {self.exposure}")
 
 
 def target_channels(model: torch.nn.Module) -> list[str]:
@@ -164,6 +171,9 @@ class _BatchSource(torch.utils.data.Dataset):
                 frame = self._frames[c.path]
                 c.inputs = augment_arrays(c.inputs, op, frame)
                 c.reference = augment_arrays(c.reference, op, frame)
+            if self.cfg.exposure is not None:  # drawn last: runs without it keep their crops
+                k = draw_exposure(rng, self.cfg.exposure)
+                c.inputs, c.reference = scale_exposure(c.inputs, k), scale_exposure(c.reference, k)
             crops.append(c)
             spp.append(len(c.samples) if c.samples is not None else self.metas[c.path].spp)
         return _stack(crops, spp, s.kind, self.targets)

@@ -48,7 +48,7 @@ def has_branches(model: Denoiser) -> bool:
 def data_config(cfg: TrainConfig) -> DataConfig:
     """The data side's settings for this run."""
     return DataConfig(crop=cfg.crop, batch=cfg.batch, spp_range=cfg.spp_range, sampling=cfg.sampling, augment=cfg.augment,
-                      workers=cfg.workers, target=cfg.target, seed=cfg.seed)
+                      exposure=cfg.exposure, workers=cfg.workers, target=cfg.target, seed=cfg.seed)
 
 
 class Trainer:
