@@ -16,6 +16,7 @@ from mcdenoise.infer.memory import DEFAULT_MAX_MEMORY, MemoryCost, measure_cost
 from mcdenoise.infer.receptive import alignment, receptive_field
 from mcdenoise.infer.sources import Inputs
 from mcdenoise.infer.tiling import TilePlan, plan_tiles, run_tiled
+from mcdenoise.models.exposure import EXPOSURE_SCALE
 from mcdenoise.models.registry import Denoiser
 
 __all__ = ["default_device", "memory_cost", "tile_plan", "emitter_reach", "denoise_inputs", "RunInfo",
@@ -149,9 +150,13 @@ def denoise_inputs(inputs: Inputs, model: Denoiser, *, device: torch.device | st
     plan = tile_plan(model, inputs.height, inputs.width, spp=spp, device=device, tile=tile, max_memory=max_memory,
                      reach=emitter_reach(inputs, names))
     add_oidn(inputs, [n for n in names if n in OIDN_CHANNELS])
+    scale = image_exposure(inputs, model, names, device)
 
     def read(t: Any) -> dict[str, torch.Tensor]:
-        return inputs.batch(names, kind, t.window, t.core, device)
+        b = inputs.batch(names, kind, t.window, t.core, device)
+        if scale is not None:
+            b[EXPOSURE_SCALE] = scale
+        return b
 
     bar = None
     if progress is not False:
@@ -164,6 +169,17 @@ def denoise_inputs(inputs: Inputs, model: Denoiser, *, device: torch.device | st
     out = run_tiled(model, read, plan, progress=bar)
     inputs.warn_nonfinite()
     return out, RunInfo(plan, device, names, spp)
+
+
+def image_exposure(inputs: Inputs, model: Denoiser, names: list[str], device: torch.device) -> torch.Tensor | None:
+    """``(1,)`` autoexposure scale of the whole image for a pixel model that has autoexposure, so
+    every tile is scaled alike (a tile's own scale would differ and leave seams); None otherwise
+    (a sample model with autoexposure measures each tile)."""
+    if model.input_kind != "pixels" or getattr(getattr(model, "config", None), "autoexposure", None) is None:
+        return None
+    box = (0, 0, inputs.height, inputs.width)
+    with torch.no_grad():
+        return model.exposure_of(inputs.batch(names, "pixels", box, box, device))
 
 
 def add_oidn(inputs: Inputs, channels: list[str] | tuple[str, ...] = ("oidn",)) -> None:

@@ -37,6 +37,12 @@ class Denoiser(nn.Module):
     def forward(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:  # (B, 3, H, W)
         raise NotImplementedError
 
+    def exposure_of(self, batch: dict[str, torch.Tensor]) -> torch.Tensor | None:
+        """``(B,)`` autoexposure scale the model would apply to ``batch``
+        (:mod:`mcdenoise.models.exposure`); None for a model without autoexposure (the default).
+        Tiled inference measures it on the whole image and gives it to every tile."""
+        return None
+
     def conv_trunks(self) -> list[str]:
         """Dotted names of the submodules that may run in bfloat16 and channels_last at inference
         (:func:`mcdenoise.models.inference.prepare_inference` with ``precision="bfloat16"``).

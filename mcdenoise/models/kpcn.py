@@ -41,6 +41,7 @@ from mcdenoise.color import luminance
 from mcdenoise.data.channels import variance_name
 from mcdenoise.models.base import Denoiser, register_model
 from mcdenoise.models.emitters import as_reflectance, emitter_mask, fill_emitters, pass_through
+from mcdenoise.models.exposure import batch_exposure, scale_batch
 from mcdenoise.ops.gather import gather, gather_rows
 from mcdenoise.ops.kernels import softmax_kernel
 
@@ -83,6 +84,10 @@ class KPCNConfig:
     samples and no variance: Blender, pbrt, OIDN-style files)."""
     variance_window: int = 5
     """Side of the ``"window"`` estimate (odd)."""
+    autoexposure: float | None = None
+    """Scale each image (crop in training) so its block-luminance geometric mean is this key
+    before the network, and back after it (:mod:`mcdenoise.models.exposure`): the output no longer
+    depends on the input's absolute brightness. None: the network sees the radiance as given."""
 
     def feature_channels(self) -> tuple[str, str, str]:
         """Names of the (albedo, normal, depth) buffers the features read."""
@@ -269,6 +274,8 @@ class KPCN(Denoiser):
             raise ValueError(f"KPCN: need layers >= 1 and an odd kernel_size, got {config}")
         if not config.depth_scale > 0:
             raise ValueError(f"KPCN: depth_scale must be > 0, got {config.depth_scale}")
+        if config.autoexposure is not None and not config.autoexposure > 0:
+            raise ValueError(f"KPCN: autoexposure must be a key > 0 or None, got {config.autoexposure}")
         config.feature_channels()  # refuses an unknown feature_hit now, not at the first batch
         if config.variance not in ("input", "window") or config.variance_window < 1 or config.variance_window % 2 == 0:
             raise ValueError(f"KPCN: variance must be 'input' or 'window' with an odd variance_window, got {config}")
@@ -295,13 +302,27 @@ class KPCN(Denoiser):
             raise ValueError(f"{type(self).__name__}: batch lacks channels {missing}")
         return kpcn_features(batch, self.config)
 
+    def _colour(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
+        return batch["diffuse"] + batch["specular"] if self.config.split else batch["radiance"]
+
+    def _exposure(self, batch: dict[str, torch.Tensor]) -> torch.Tensor | None:
+        return batch_exposure(batch, self._colour(batch), self.config.autoexposure)
+
+    def exposure_of(self, batch: dict[str, torch.Tensor]) -> torch.Tensor | None:
+        return self._exposure(batch)
+
     def forward_branches(self, batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
-        """Branch name -> (B, 3, H, W) denoised colour in the branch's transformed domain.
+        """Branch name -> (B, 3, H, W) denoised colour in the branch's transformed domain (at the
+        autoexposure scale, when the config has one).
 
         ``diffuse`` is irradiance (divided by albedo + eps), ``specular``/``radiance`` is
         ``log(1 + c)``. Compare against :meth:`branch_targets` for the paper's per-branch L1
         pre-training; :meth:`recombine` gives the final image.
         """
+        s = self._exposure(batch)
+        return self._branches(batch if s is None else scale_batch(batch, s))
+
+    def _branches(self, batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         out: dict[str, torch.Tensor] = {}
         for name, x in self.features(batch).items():
             z = self.branches[name](x)
@@ -319,7 +340,10 @@ class KPCN(Denoiser):
 
     def branch_targets(self, reference: dict[str, torch.Tensor], batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         """Reference colours (B, 3, H, W) carried into each branch's domain with the noisy albedo
-        (the feature albedo, as in :meth:`recombine`)."""
+        (the feature albedo, as in :meth:`recombine`), at :meth:`forward_branches`' exposure."""
+        s = self._exposure(batch)
+        if s is not None:
+            reference = scale_batch(reference, s)
         if self.config.split:
             albedo = as_reflectance(batch[self.config.feature_channels()[0]])
             return {
@@ -341,10 +365,14 @@ class KPCN(Denoiser):
 
     def forward(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
         emitters = emitter_mask(batch[self.config.feature_channels()[0]])
+        s = self._exposure(batch)  # of the image as given: a tile's scale is its whole image's
         inner = fill_emitters(batch, emitters)
-        out = self.recombine(self.forward_branches(inner), inner)  # type: ignore[arg-type]
-        colour = batch["diffuse"] + batch["specular"] if self.config.split else batch["radiance"]
-        return pass_through(out, colour, emitters)
+        if s is not None:
+            inner = scale_batch(inner, s)
+        out = self.recombine(self._branches(inner), inner)  # type: ignore[arg-type]
+        if s is not None:
+            out = out / s.to(out.dtype).view(-1, 1, 1, 1)
+        return pass_through(out, self._colour(batch), emitters)
 
 
 _PAPER = "Bako, Vogels et al., Kernel-Predicting Convolutional Networks for Denoising Monte Carlo Renderings, SIGGRAPH 2017"

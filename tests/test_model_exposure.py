@@ -1,0 +1,127 @@
+"""Autoexposure (``KPCNConfig.autoexposure``, :mod:`mcdenoise.models.exposure`): the model is exactly
+exposure-equivariant, its training losses do not depend on exposure, and tiles use the whole
+image's scale."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+
+from mcdenoise.infer.receptive import alignment, receptive_field
+from mcdenoise.infer.sources import from_arrays
+from mcdenoise.infer.run import denoise_inputs
+from mcdenoise.models import build_model, synthetic_batch
+from mcdenoise.models.exposure import EXPOSURE_SCALE, autoexposure_scale, scale_batch
+
+KEY = 0.18
+
+
+def _model(preset: str, key: float | None, seed: int = 0) -> torch.nn.Module:
+    torch.manual_seed(seed)
+    m = build_model("kpcn", preset, autoexposure=key).eval()
+    return m.double()
+
+
+def _scaled(batch: dict[str, torch.Tensor], k: float) -> dict[str, torch.Tensor]:
+    return scale_batch(batch, torch.full((next(iter(batch.values())).shape[0],), k, dtype=torch.float64))
+
+
+def test_scale_is_key_over_the_geometric_mean_of_lit_blocks() -> None:
+    """Catches an arithmetic mean (one bright lamp would set the exposure), dark blocks counted
+    (a night sky would make the picture look dim), and a black image divided by zero."""
+    img = torch.zeros(2, 3, 16, 16, dtype=torch.float64)
+    img[0, :, :8, :8] = 4.0  # one lit block of luminance 4 ...
+    img[0, :, 8:, 8:] = 0.25  # ... and one of 0.25; the other two are black
+    s = autoexposure_scale(img, KEY)
+    assert s[0].item() == pytest.approx(KEY / 1.0, rel=1e-6)  # sqrt(4 * 0.25) = 1
+    assert s[1].item() == 1.0  # nothing lit: left as it is
+    samples = img[:, None].expand(2, 4, 3, 16, 16)
+    torch.testing.assert_close(autoexposure_scale(samples, KEY), s)
+
+
+@pytest.mark.parametrize("preset", ["small", "pixel"])
+def test_output_follows_exposure_exactly(preset: str) -> None:
+    """Catches a radiance-like input left unscaled, a variance scaled by k instead of k**2, and an
+    output not divided back: any of them breaks equivariance. The same model without
+    autoexposure is far from equivariant on the same batch, so the check can fail."""
+    torch.manual_seed(3)
+    for key, must_hold in ((KEY, True), (None, False)):
+        model = _model(preset, key)
+        b = synthetic_batch(model, batch=2, height=18, width=20, dtype=torch.float64)
+        with torch.no_grad():
+            base = model(b)
+            for k in (0.01, 37.0):
+                out = model(_scaled(b, k))
+                err = ((out - k * base).abs().max() / (k * base).abs().max()).item()
+                if must_hold:
+                    assert err < 1e-9, (preset, k, err)
+                else:
+                    assert err > 1e-3, (preset, k, err)
+
+
+def test_branch_loss_does_not_depend_on_exposure() -> None:
+    """The per-branch pre-training compares forward_branches with branch_targets: catches targets
+    left at the rendered exposure while the branches see the scaled image (the loss would then
+    teach the network to change brightness)."""
+    model = _model("small", KEY)
+    b = synthetic_batch(model, batch=2, height=16, width=16, dtype=torch.float64)
+    ref = {n: b[n].clone() * 0.9 for n in ("diffuse", "specular")}
+    with torch.no_grad():
+        def loss(batch, reference):
+            out, tgt = model.forward_branches(batch), model.branch_targets(reference, batch)
+            return sum(float((out[n] - tgt[n]).abs().mean()) for n in out)
+
+        base = loss(b, ref)
+        for k in (0.05, 20.0):
+            assert loss(_scaled(b, k), _scaled(ref, k)) == pytest.approx(base, rel=1e-9)
+
+
+def test_tiles_use_the_whole_image_scale() -> None:
+    """Catches tiled inference that lets each tile measure its own exposure: a dark tile next to a
+    bright one would be filtered at another brightness and leave a seam."""
+    model = _model("pixel", KEY).float()
+    h, w = 40, 44
+    rng = np.random.default_rng(0)
+    colour = rng.random((3, h, w), dtype=np.float32) * 0.2
+    colour[:, :, w // 2 :] *= 30  # a bright half: each tile's own scale would differ a lot
+    albedo = np.full((3, h, w), 0.5, np.float32)
+    normal = np.zeros((3, h, w), np.float32)
+    normal[2] = 1
+    depth = np.ones((1, h, w), np.float32) * 2
+    feats = {"diffuse": colour * 0.7, "specular": colour * 0.3}
+
+    def run(tile):
+        inp = from_arrays(colour, albedo=albedo, normal=normal, depth=depth, features=feats)
+        return denoise_inputs(inp, model, device="cpu", tile=tile, progress=False)
+
+    whole, info_whole = run(None)
+    tiled, info = run(16)
+    assert len(info.plan) > 1 and len(info_whole.plan) == 1
+    assert np.abs(tiled - whole).max() / np.abs(whole).max() < 1e-4
+    # And the scale is the model's own measure of the whole image.
+    batch = {n: torch.from_numpy(a)[None] for n, a in (("diffuse", feats["diffuse"]), ("specular", feats["specular"]))}
+    assert model.exposure_of(batch).item() == pytest.approx(autoexposure_scale(torch.from_numpy(colour)[None], KEY).item(),
+                                                            rel=1e-5)
+
+
+def test_given_scale_overrides_the_measured_one() -> None:
+    """Catches a model that ignores ``batch["exposure_scale"]`` (tiles would measure their own)."""
+    model = _model("pixel", KEY)
+    b = synthetic_batch(model, batch=1, height=16, width=16, dtype=torch.float64)
+    with torch.no_grad():
+        own = model(b)
+        given = model({**b, EXPOSURE_SCALE: model.exposure_of(b)})
+        other = model({**b, EXPOSURE_SCALE: model.exposure_of(b) * 7})
+    torch.testing.assert_close(given, own)
+    assert (other - own).abs().max() > 1e-6
+
+
+def test_autoexposure_is_saved_with_the_model_config() -> None:
+    """Catches the key lost from the config (a shipped file would load without autoexposure)."""
+    model = build_model("kpcn", "pixel", autoexposure=KEY)
+    assert dataclasses.asdict(model.config)["autoexposure"] == KEY
+    with pytest.raises(ValueError, match="autoexposure"):
+        build_model("kpcn", "pixel", autoexposure=0.0)
