@@ -1,4 +1,5 @@
-"""Autoexposure (``KPCNConfig.autoexposure``, :mod:`mcdenoise.models.exposure`): the model is exactly
+"""Autoexposure (``KPCNConfig.autoexposure``, ``WSKPConfig.autoexposure``,
+:mod:`mcdenoise.models.exposure`): the model is exactly
 exposure-equivariant, its training losses do not depend on exposure, and tiles use the whole
 image's scale."""
 
@@ -19,9 +20,13 @@ from mcdenoise.models.exposure import EXPOSURE_SCALE, autoexposure_scale, scale_
 KEY = 0.18
 
 
-def _model(preset: str, key: float | None, seed: int = 0) -> torch.nn.Module:
+#: (model, preset) pairs that take ``autoexposure``.
+MODELS = [("kpcn", "small"), ("kpcn", "pixel"), ("wskp", "small")]
+
+
+def _model(preset: str, key: float | None, seed: int = 0, name: str = "kpcn") -> torch.nn.Module:
     torch.manual_seed(seed)
-    m = build_model("kpcn", preset, autoexposure=key).eval()
+    m = build_model(name, preset, autoexposure=key).eval()
     return m.double()
 
 
@@ -42,14 +47,14 @@ def test_scale_is_key_over_the_geometric_mean_of_lit_blocks() -> None:
     torch.testing.assert_close(autoexposure_scale(samples, KEY), s)
 
 
-@pytest.mark.parametrize("preset", ["small", "pixel"])
-def test_output_follows_exposure_exactly(preset: str) -> None:
+@pytest.mark.parametrize("name,preset", MODELS)
+def test_output_follows_exposure_exactly(name: str, preset: str) -> None:
     """Catches a radiance-like input left unscaled, a variance scaled by k instead of k**2, and an
     output not divided back: any of them breaks equivariance. The same model without
     autoexposure is far from equivariant on the same batch, so the check can fail."""
     torch.manual_seed(3)
     for key, must_hold in ((KEY, True), (None, False)):
-        model = _model(preset, key)
+        model = _model(preset, key, name=name)
         b = synthetic_batch(model, batch=2, height=18, width=20, dtype=torch.float64)
         with torch.no_grad():
             base = model(b)
@@ -79,10 +84,11 @@ def test_branch_loss_does_not_depend_on_exposure() -> None:
             assert loss(_scaled(b, k), _scaled(ref, k)) == pytest.approx(base, rel=1e-9)
 
 
-def test_tiles_use_the_whole_image_scale() -> None:
+@pytest.mark.parametrize("name,preset", [("kpcn", "pixel"), ("wskp", "small")])
+def test_tiles_use_the_whole_image_scale(name: str, preset: str) -> None:
     """Catches tiled inference that lets each tile measure its own exposure: a dark tile next to a
     bright one would be filtered at another brightness and leave a seam."""
-    model = _model("pixel", KEY).float()
+    model = _model(preset, KEY, name=name).float()
     h, w = 40, 44
     rng = np.random.default_rng(0)
     colour = rng.random((3, h, w), dtype=np.float32) * 0.2
@@ -102,7 +108,8 @@ def test_tiles_use_the_whole_image_scale() -> None:
     assert len(info.plan) > 1 and len(info_whole.plan) == 1
     assert np.abs(tiled - whole).max() / np.abs(whole).max() < 1e-4
     # And the scale is the model's own measure of the whole image.
-    batch = {n: torch.from_numpy(a)[None] for n, a in (("diffuse", feats["diffuse"]), ("specular", feats["specular"]))}
+    batch = {n: torch.from_numpy(a)[None] for n, a in (("diffuse", feats["diffuse"]), ("specular", feats["specular"]),
+                                                        ("radiance", colour))}
     assert model.exposure_of(batch).item() == pytest.approx(autoexposure_scale(torch.from_numpy(colour)[None], KEY).item(),
                                                             rel=1e-5)
 
@@ -119,9 +126,10 @@ def test_given_scale_overrides_the_measured_one() -> None:
     assert (other - own).abs().max() > 1e-6
 
 
-def test_autoexposure_is_saved_with_the_model_config() -> None:
+@pytest.mark.parametrize("name,preset", MODELS)
+def test_autoexposure_is_saved_with_the_model_config(name: str, preset: str) -> None:
     """Catches the key lost from the config (a shipped file would load without autoexposure)."""
-    model = build_model("kpcn", "pixel", autoexposure=KEY)
+    model = build_model(name, preset, autoexposure=KEY)
     assert dataclasses.asdict(model.config)["autoexposure"] == KEY
     with pytest.raises(ValueError, match="autoexposure"):
-        build_model("kpcn", "pixel", autoexposure=0.0)
+        build_model(name, preset, autoexposure=0.0)

@@ -15,7 +15,7 @@ import torch.nn.functional as F
 
 from mcdenoise.data.channels import exposure_power
 
-__all__ = ["EXPOSURE_SCALE", "BLOCK", "autoexposure_scale", "scale_batch", "batch_exposure"]
+__all__ = ["EXPOSURE_SCALE", "BLOCK", "autoexposure_scale", "scale_batch", "unscale", "batch_exposure"]
 
 #: Batch entry with a precomputed ``(B,)`` scale (the whole image's, given to each tile).
 EXPOSURE_SCALE = "exposure_scale"
@@ -63,3 +63,8 @@ def batch_exposure(batch: dict[str, torch.Tensor], colour: torch.Tensor, key: fl
     if given is not None:
         return given.reshape(-1).to(colour.device, torch.promote_types(colour.dtype, torch.float32))
     return autoexposure_scale(colour, key)
+
+
+def unscale(out: torch.Tensor, scale: torch.Tensor | None) -> torch.Tensor:
+    """``(B, 3, H, W)`` output at the autoexposure scale back to the input's exposure."""
+    return out if scale is None else out / scale.to(out.dtype).view(-1, 1, 1, 1)

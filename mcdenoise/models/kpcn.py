@@ -41,7 +41,7 @@ from mcdenoise.color import luminance
 from mcdenoise.data.channels import variance_name
 from mcdenoise.models.base import Denoiser, register_model
 from mcdenoise.models.emitters import as_reflectance, emitter_mask, fill_emitters, pass_through
-from mcdenoise.models.exposure import batch_exposure, scale_batch
+from mcdenoise.models.exposure import batch_exposure, scale_batch, unscale
 from mcdenoise.ops.gather import gather, gather_rows
 from mcdenoise.ops.kernels import softmax_kernel
 
@@ -370,9 +370,7 @@ class KPCN(Denoiser):
         if s is not None:
             inner = scale_batch(inner, s)
         out = self.recombine(self._branches(inner), inner)  # type: ignore[arg-type]
-        if s is not None:
-            out = out / s.to(out.dtype).view(-1, 1, 1, 1)
-        return pass_through(out, self._colour(batch), emitters)
+        return pass_through(unscale(out, s), self._colour(batch), emitters)
 
 
 _PAPER = "Bako, Vogels et al., Kernel-Predicting Convolutional Networks for Denoising Monte Carlo Renderings, SIGGRAPH 2017"

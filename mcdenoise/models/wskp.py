@@ -33,6 +33,7 @@ from torch import nn
 
 from mcdenoise.models.base import Denoiser, register_model
 from mcdenoise.models.emitters import as_reflectance, emitter_mask, fill_emitters, pass_through
+from mcdenoise.models.exposure import batch_exposure, scale_batch, unscale
 from mcdenoise.ops.importance import fused_importance_filter
 from mcdenoise.ops.temporal import temporal_accumulate
 
@@ -184,6 +185,10 @@ class WSKPConfig:
     demod_threshold: float = 0.05
     """Albedo below which demodulation is phased out (see :func:`effective_albedo`; the paper gives
     no rule: it divides by the albedo)."""
+    autoexposure: float | None = None
+    """Key of the image-level autoexposure (:mod:`mcdenoise.models.exposure`; not in the paper):
+    the radiance is scaled to it before the network and back after, so the output follows
+    exposure exactly. None: the network sees the radiance as given."""
 
 
 class WSKP(Denoiser):
@@ -195,6 +200,8 @@ class WSKP(Denoiser):
         super().__init__(config)
         if config.blocks < 1 or not config.kernel_sizes:
             raise ValueError(f"WSKP: need blocks >= 1 and at least one kernel size, got {config}")
+        if config.autoexposure is not None and not config.autoexposure > 0:
+            raise ValueError(f"WSKP: autoexposure must be a key > 0 or None, got {config.autoexposure}")
         n = len(config.kernel_sizes)
         chans = [INPUT_CHANNELS] + [config.channels] * (config.blocks - 1) + [2 * n]
         # The last block outputs logits (importance and fusion), so no ReLU there.
@@ -219,13 +226,18 @@ class WSKP(Denoiser):
         n = len(self.config.kernel_sizes)
         return z[:, :n], z[:, n:]
 
+    def exposure_of(self, batch: dict[str, torch.Tensor]) -> torch.Tensor | None:
+        return batch_exposure(batch, batch["radiance"], self.config.autoexposure)
+
     def forward(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
         emitters = emitter_mask(batch["albedo"])
-        x, irradiance, albedo = wskp_input(fill_emitters(batch, emitters), self.config.demod_threshold)
+        s = self.exposure_of(batch)  # of the image as given: a tile's scale is its whole image's
+        inner = fill_emitters(batch, emitters)
+        x, irradiance, albedo = wskp_input(inner if s is None else scale_batch(inner, s), self.config.demod_threshold)
         z = self.net(x)
         n = len(self.config.kernel_sizes)
         filtered = fused_importance_filter(irradiance, z[:, :n], z[:, n:], sizes=tuple(self.config.kernel_sizes))
-        return pass_through(filtered * albedo, batch["radiance"], emitters)
+        return pass_through(unscale(filtered * albedo, s), batch["radiance"], emitters)
 
     def reparameterize(self) -> "WSKP":
         """Fold every RepVGG block into one 5x5 conv for inference; puts the model in eval mode.
