@@ -21,7 +21,7 @@ KEY = 0.18
 
 
 #: (model, preset) pairs that take ``autoexposure``.
-MODELS = [("kpcn", "small"), ("kpcn", "pixel"), ("wskp", "small")]
+MODELS = [("kpcn", "small"), ("kpcn", "pixel"), ("wskp", "small"), ("sbmc", "small"), ("layer", "small")]
 
 
 def _model(preset: str, key: float | None, seed: int = 0, name: str = "kpcn") -> torch.nn.Module:
@@ -112,6 +112,24 @@ def test_tiles_use_the_whole_image_scale(name: str, preset: str) -> None:
                                                         ("radiance", colour))}
     assert model.exposure_of(batch).item() == pytest.approx(autoexposure_scale(torch.from_numpy(colour)[None], KEY).item(),
                                                             rel=1e-5)
+
+
+def test_sample_model_tiles_use_the_whole_image_scale() -> None:
+    """The same for a sample model (the driver measures its scale on the pixel means)."""
+    torch.manual_seed(0)
+    model = build_model("layer", "small", autoexposure=KEY).eval()  # receptive field 19: windows < image
+    b = synthetic_batch(model, batch=1, spp=2, height=64, width=72)
+    b["radiance"][..., 36:] *= 40  # a bright right side
+    samples = {k: v[0].numpy() for k, v in b.items() if k != "scene_features"}
+
+    def run(tile):
+        inp = from_arrays(samples["radiance"].mean(axis=0), samples=samples, scene_features=b["scene_features"][0].numpy())
+        return denoise_inputs(inp, model, device="cpu", tile=tile, progress=False)
+
+    whole, info_whole = run(None)
+    tiled, info = run(16)
+    assert len(info.plan) > 1 and len(info_whole.plan) == 1
+    assert np.abs(tiled - whole).max() / np.abs(whole).max() < 1e-4
 
 
 def test_given_scale_overrides_the_measured_one() -> None:

@@ -172,14 +172,19 @@ def denoise_inputs(inputs: Inputs, model: Denoiser, *, device: torch.device | st
 
 
 def image_exposure(inputs: Inputs, model: Denoiser, names: list[str], device: torch.device) -> torch.Tensor | None:
-    """``(1,)`` autoexposure scale of the whole image for a pixel model that has autoexposure, so
-    every tile is scaled alike (a tile's own scale would differ and leave seams); None otherwise
-    (a sample model with autoexposure measures each tile)."""
-    if model.input_kind != "pixels" or getattr(getattr(model, "config", None), "autoexposure", None) is None:
+    """``(1,)`` autoexposure scale of the whole image for a model that has autoexposure, so every
+    tile is scaled alike (a tile's own scale would differ and leave seams); None otherwise. A
+    sample model's is measured on the pixel means of its radiance, which is what it measures too."""
+    if getattr(getattr(model, "config", None), "autoexposure", None) is None:
         return None
     box = (0, 0, inputs.height, inputs.width)
+    if model.input_kind == "pixels":
+        whole = inputs.batch(names, "pixels", box, box, device)
+    else:
+        inputs.ensure_pixels()
+        whole = {"radiance": torch.from_numpy(np.ascontiguousarray(inputs.pixels["radiance"]))[None].to(device)}
     with torch.no_grad():
-        return model.exposure_of(inputs.batch(names, "pixels", box, box, device))
+        return model.exposure_of(whole)
 
 
 def add_oidn(inputs: Inputs, channels: list[str] | tuple[str, ...] = ("oidn",)) -> None:

@@ -15,6 +15,8 @@ from typing import Any, Callable, ClassVar
 import torch
 from torch import nn
 
+from mcdenoise.models.exposure import batch_exposure
+
 __all__ = ["Denoiser", "ModelEntry", "MODELS", "register_model"]
 
 
@@ -38,10 +40,18 @@ class Denoiser(nn.Module):
         raise NotImplementedError
 
     def exposure_of(self, batch: dict[str, torch.Tensor]) -> torch.Tensor | None:
-        """``(B,)`` autoexposure scale the model would apply to ``batch``
-        (:mod:`mcdenoise.models.exposure`); None for a model without autoexposure (the default).
-        Tiled inference measures it on the whole image and gives it to every tile."""
-        return None
+        """``(B,)`` autoexposure scale the model applies to ``batch`` (:mod:`mcdenoise.models.exposure`),
+        measured on :meth:`exposure_colour` or given as ``batch["exposure_scale"]``; None for a
+        model whose config has no ``autoexposure`` key. Tiled inference measures it on the whole
+        image and gives it to every tile."""
+        key = getattr(self.config, "autoexposure", None)
+        if key is None:
+            return None
+        return batch_exposure(batch, self.exposure_colour(batch), key)
+
+    def exposure_colour(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
+        """The radiance the autoexposure is measured on: ``(B, 3, H, W)`` or ``(B, S, 3, H, W)``."""
+        return batch["radiance"]
 
     def conv_trunks(self) -> list[str]:
         """Dotted names of the submodules that may run in bfloat16 and channels_last at inference

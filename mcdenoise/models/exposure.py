@@ -15,7 +15,7 @@ import torch.nn.functional as F
 
 from mcdenoise.data.channels import exposure_power
 
-__all__ = ["EXPOSURE_SCALE", "BLOCK", "autoexposure_scale", "scale_batch", "unscale", "batch_exposure"]
+__all__ = ["EXPOSURE_SCALE", "BLOCK", "autoexposure_scale", "scale_batch", "unscale", "batch_exposure", "check_key"]
 
 #: Batch entry with a precomputed ``(B,)`` scale (the whole image's, given to each tile).
 EXPOSURE_SCALE = "exposure_scale"
@@ -68,3 +68,9 @@ def batch_exposure(batch: dict[str, torch.Tensor], colour: torch.Tensor, key: fl
 def unscale(out: torch.Tensor, scale: torch.Tensor | None) -> torch.Tensor:
     """``(B, 3, H, W)`` output at the autoexposure scale back to the input's exposure."""
     return out if scale is None else out / scale.to(out.dtype).view(-1, 1, 1, 1)
+
+
+def check_key(model: str, key: float | None) -> None:
+    """Refuse an autoexposure key that is not None or > 0 (one line naming the model)."""
+    if key is not None and not key > 0:
+        raise ValueError(f"{model}: autoexposure must be a key > 0 or None, got {key}")

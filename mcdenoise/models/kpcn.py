@@ -41,7 +41,7 @@ from mcdenoise.color import luminance
 from mcdenoise.data.channels import variance_name
 from mcdenoise.models.base import Denoiser, register_model
 from mcdenoise.models.emitters import as_reflectance, emitter_mask, fill_emitters, pass_through
-from mcdenoise.models.exposure import batch_exposure, scale_batch, unscale
+from mcdenoise.models.exposure import check_key, scale_batch, unscale
 from mcdenoise.ops.gather import gather, gather_rows
 from mcdenoise.ops.kernels import softmax_kernel
 
@@ -274,8 +274,7 @@ class KPCN(Denoiser):
             raise ValueError(f"KPCN: need layers >= 1 and an odd kernel_size, got {config}")
         if not config.depth_scale > 0:
             raise ValueError(f"KPCN: depth_scale must be > 0, got {config.depth_scale}")
-        if config.autoexposure is not None and not config.autoexposure > 0:
-            raise ValueError(f"KPCN: autoexposure must be a key > 0 or None, got {config.autoexposure}")
+        check_key("KPCN", config.autoexposure)
         config.feature_channels()  # refuses an unknown feature_hit now, not at the first batch
         if config.variance not in ("input", "window") or config.variance_window < 1 or config.variance_window % 2 == 0:
             raise ValueError(f"KPCN: variance must be 'input' or 'window' with an odd variance_window, got {config}")
@@ -302,14 +301,8 @@ class KPCN(Denoiser):
             raise ValueError(f"{type(self).__name__}: batch lacks channels {missing}")
         return kpcn_features(batch, self.config)
 
-    def _colour(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
+    def exposure_colour(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
         return batch["diffuse"] + batch["specular"] if self.config.split else batch["radiance"]
-
-    def _exposure(self, batch: dict[str, torch.Tensor]) -> torch.Tensor | None:
-        return batch_exposure(batch, self._colour(batch), self.config.autoexposure)
-
-    def exposure_of(self, batch: dict[str, torch.Tensor]) -> torch.Tensor | None:
-        return self._exposure(batch)
 
     def forward_branches(self, batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         """Branch name -> (B, 3, H, W) denoised colour in the branch's transformed domain (at the
@@ -319,7 +312,7 @@ class KPCN(Denoiser):
         ``log(1 + c)``. Compare against :meth:`branch_targets` for the paper's per-branch L1
         pre-training; :meth:`recombine` gives the final image.
         """
-        s = self._exposure(batch)
+        s = self.exposure_of(batch)
         return self._branches(batch if s is None else scale_batch(batch, s))
 
     def _branches(self, batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
@@ -341,7 +334,7 @@ class KPCN(Denoiser):
     def branch_targets(self, reference: dict[str, torch.Tensor], batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         """Reference colours (B, 3, H, W) carried into each branch's domain with the noisy albedo
         (the feature albedo, as in :meth:`recombine`), at :meth:`forward_branches`' exposure."""
-        s = self._exposure(batch)
+        s = self.exposure_of(batch)
         if s is not None:
             reference = scale_batch(reference, s)
         if self.config.split:
@@ -365,12 +358,12 @@ class KPCN(Denoiser):
 
     def forward(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
         emitters = emitter_mask(batch[self.config.feature_channels()[0]])
-        s = self._exposure(batch)  # of the image as given: a tile's scale is its whole image's
+        s = self.exposure_of(batch)  # of the image as given: a tile's scale is its whole image's
         inner = fill_emitters(batch, emitters)
         if s is not None:
             inner = scale_batch(inner, s)
         out = self.recombine(self._branches(inner), inner)  # type: ignore[arg-type]
-        return pass_through(unscale(out, s), self._colour(batch), emitters)
+        return pass_through(unscale(out, s), self.exposure_colour(batch), emitters)
 
 
 _PAPER = "Bako, Vogels et al., Kernel-Predicting Convolutional Networks for Denoising Monte Carlo Renderings, SIGGRAPH 2017"

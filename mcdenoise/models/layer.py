@@ -39,6 +39,7 @@ from mcdenoise.models.layer_config import (  # noqa: F401  (LAYER_CHANNELS, Laye
 )
 from mcdenoise.models.base import Denoiser, register_model
 from mcdenoise.models.emitters import ALBEDO_CHANNELS, as_reflectance, batch_emitter_mask, fill_emitters, pass_through
+from mcdenoise.models.exposure import check_key, scale_batch, unscale
 from mcdenoise.ops.composite import composite_layers, gather_layer_sums, splat_layer_sums
 from mcdenoise.ops.multiscale import build_pyramid, combine_levels
 
@@ -90,6 +91,7 @@ class LayerDenoiser(Denoiser):
             raise ValueError("circle_of_confusion needs the 'depth' channel")
         if cfg.layers < 1:
             raise ValueError(f"layers must be >= 1, got {cfg.layers}")
+        check_key("layer", cfg.autoexposure)
         if cfg.compositing not in ("alpha", "weighted"):
             raise ValueError(f"compositing must be 'alpha' or 'weighted', got {cfg.compositing!r}")
         if cfg.kernel_size % 2 != 1:
@@ -218,8 +220,10 @@ class LayerDenoiser(Denoiser):
     def forward(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
         """Denoise: per-sample buffers -> ``(B, 3, H, W)`` linear radiance."""
         emitters = batch_emitter_mask(batch, self.config.channels)
-        out = self._denoise(fill_emitters(batch, emitters))  # type: ignore[arg-type]
-        return pass_through(out, batch["radiance"], emitters)
+        s = self.exposure_of(batch)  # of the image as given (mcdenoise.models.exposure)
+        inner = fill_emitters(batch, emitters)
+        out = self._denoise(inner if s is None else scale_batch(inner, s))  # type: ignore[arg-type]
+        return pass_through(unscale(out, s), batch["radiance"], emitters)
 
     def _denoise(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
         cfg = self.config

@@ -65,6 +65,10 @@ class LayerConfig:
     """Sec. 6: ``levels`` levels of ``kernel_size`` kernels at full, 1/2, 1/4... resolution (Eq. 10)."""
     levels: int = 3
     """Number of levels of the hierarchical variant."""
+    autoexposure: float | None = None
+    """Key of the image-level autoexposure (:mod:`mcdenoise.models.exposure`; not in the paper):
+    the radiance is scaled to it before the network and back after, so the output follows
+    exposure exactly. None: the network sees the radiance as given."""
 
 
 def _paper_layer(**kw: object) -> LayerConfig:

@@ -30,6 +30,7 @@ from mcdenoise.data.channels import SCENE_FEATURES, num_components
 from mcdenoise.models.blocks import FCStack, UNet, signed_log1p
 from mcdenoise.models.base import Denoiser, register_model
 from mcdenoise.models.emitters import ALBEDO_CHANNELS, as_reflectance, batch_emitter_mask, fill_emitters, pass_through
+from mcdenoise.models.exposure import check_key, scale_batch, unscale
 from mcdenoise.ops.gather import gather, gather_rows
 from mcdenoise.ops.kernels import destination_max, per_destination_exp, per_pixel_exp
 from mcdenoise.ops.splat import SplatAccumulator, normalize_splat, splat, splat_into_
@@ -95,6 +96,10 @@ class SBMCConfig:
     band of rows at a time, sized to this budget (splat: two passes, per-destination max then
     splat). With gradients (training) the splat variants generate kernels a chunk of samples at a
     time once all samples' kernels would exceed it. Same result either way."""
+    autoexposure: float | None = None
+    """Key of the image-level autoexposure (:mod:`mcdenoise.models.exposure`; not in the paper):
+    the radiance is scaled to it before the network and back after, so the output follows
+    exposure exactly. None: the network sees the radiance as given."""
 
 
 def _paper(**kw: object) -> SBMCConfig:
@@ -133,6 +138,7 @@ class SBMC(Denoiser):
             raise ValueError(f"kernel_size must be odd, got {cfg.kernel_size}")
         if cfg.steps < 1 or cfg.fc_layers < 1:
             raise ValueError("steps and fc_layers must be >= 1")
+        check_key("SBMC", cfg.autoexposure)
         self.sample_features = sum(num_components(c) for c in cfg.channels)
         n_in = (2 * self.sample_features if not cfg.per_sample else self.sample_features) + len(SCENE_FEATURES)
         d = cfg.embed_width
@@ -302,8 +308,10 @@ class SBMC(Denoiser):
         albedo above 1 in any sample) are filled from their neighbours in every sample and pass through
         unfiltered (:mod:`mcdenoise.models.emitters`)."""
         emitters = batch_emitter_mask(batch, self.config.channels)
-        out = self._denoise(fill_emitters(batch, emitters))  # type: ignore[arg-type]
-        return pass_through(out, batch["radiance"], emitters)
+        s = self.exposure_of(batch)  # of the image as given (mcdenoise.models.exposure)
+        inner = fill_emitters(batch, emitters)
+        out = self._denoise(inner if s is None else scale_batch(inner, s))  # type: ignore[arg-type]
+        return pass_through(unscale(out, s), batch["radiance"], emitters)
 
     def _denoise(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
         cfg = self.config

@@ -33,7 +33,7 @@ from torch import nn
 
 from mcdenoise.models.base import Denoiser, register_model
 from mcdenoise.models.emitters import as_reflectance, emitter_mask, fill_emitters, pass_through
-from mcdenoise.models.exposure import batch_exposure, scale_batch, unscale
+from mcdenoise.models.exposure import check_key, scale_batch, unscale
 from mcdenoise.ops.importance import fused_importance_filter
 from mcdenoise.ops.temporal import temporal_accumulate
 
@@ -200,8 +200,7 @@ class WSKP(Denoiser):
         super().__init__(config)
         if config.blocks < 1 or not config.kernel_sizes:
             raise ValueError(f"WSKP: need blocks >= 1 and at least one kernel size, got {config}")
-        if config.autoexposure is not None and not config.autoexposure > 0:
-            raise ValueError(f"WSKP: autoexposure must be a key > 0 or None, got {config.autoexposure}")
+        check_key("WSKP", config.autoexposure)
         n = len(config.kernel_sizes)
         chans = [INPUT_CHANNELS] + [config.channels] * (config.blocks - 1) + [2 * n]
         # The last block outputs logits (importance and fusion), so no ReLU there.
@@ -225,9 +224,6 @@ class WSKP(Denoiser):
         z = self.net(self.features(batch))
         n = len(self.config.kernel_sizes)
         return z[:, :n], z[:, n:]
-
-    def exposure_of(self, batch: dict[str, torch.Tensor]) -> torch.Tensor | None:
-        return batch_exposure(batch, batch["radiance"], self.config.autoexposure)
 
     def forward(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
         emitters = emitter_mask(batch["albedo"])
