@@ -3,6 +3,8 @@ metrics.csv recovery after a torn write, loss.png."""
 
 from __future__ import annotations
 
+import json
+
 import math
 from pathlib import Path
 
@@ -237,6 +239,24 @@ def test_exposure_setting_round_trips_and_guards_a_resume() -> None:
     del old["exposure"]  # a config.json written before the option existed
     check_resume_config({"train": old, "manifest_sha256": "x", "model_config": {}},
                         doc(TrainConfig(model="kpcn", data="d")), Path("run/config.json"))
+
+
+def test_resume_accepts_a_model_field_added_since_the_run_was_saved() -> None:
+    """Catches every run saved before a model-configuration field existed (``autoexposure``) being
+    refused on resume, and a real change of that field slipping through."""
+    import dataclasses as dc
+
+    from mcdenoise.models import build_model
+
+    cur = json.loads(json.dumps(dc.asdict(build_model("kpcn", "pixel").config)))
+    train = TrainConfig(model="kpcn", data="d").to_json()
+    old = {k: v for k, v in cur.items() if k != "autoexposure"}
+    doc = lambda mc: {"train": train, "manifest_sha256": "x", "model_config": mc}  # noqa: E731
+    check_resume_config(doc(old), doc(cur), Path("run/config.json"))
+    with pytest.raises(ConfigError, match="model's configuration"):
+        check_resume_config(doc(old), doc(dict(cur, autoexposure=0.18)), Path("run/config.json"))
+    with pytest.raises(ConfigError, match="model's configuration"):
+        check_resume_config(doc(dict(old, channels=7)), doc(cur), Path("run/config.json"))
 
 
 def test_cli_help_names_every_loss() -> None:

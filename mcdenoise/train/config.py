@@ -266,8 +266,28 @@ def check_resume_config(saved: dict[str, Any], current: dict[str, Any], where: P
         raise ConfigError(f"{where}: config does not match the command ({shown}); use another --out or --force to start over")
     if saved.get("manifest_sha256") != current["manifest_sha256"]:
         raise ConfigError(f"{where}: the dataset's manifest.json differs from the one this run trained on")
-    if saved.get("model_config") != current["model_config"]:
+    if _with_added_defaults(saved.get("model_config"), current, b.get("model")) != current["model_config"]:
         raise ConfigError(f"{where}: the model's configuration differs from the saved run's")
+
+
+def _with_added_defaults(saved_cfg: dict[str, Any] | None, current: dict[str, Any], model: str | None) -> dict[str, Any] | None:
+    """``saved_cfg`` with the fields that the model's configuration class gained after the run was
+    saved filled in with their defaults: the run trained as those defaults behave (e.g.
+    ``autoexposure`` None), so a resume must not be refused for them."""
+    from mcdenoise.models.base import MODELS
+
+    entry = MODELS.get(model or "")
+    if saved_cfg is None or entry is None:
+        return saved_cfg
+    out = dict(saved_cfg)
+    for f in dataclasses.fields(entry.config_cls):
+        if f.name in out or f.name not in current.get("model_config", {}):
+            continue
+        if f.default is not dataclasses.MISSING:
+            out[f.name] = json.loads(json.dumps(f.default))  # tuples as lists, as config.json holds them
+        elif f.default_factory is not dataclasses.MISSING:  # type: ignore[misc]
+            out[f.name] = json.loads(json.dumps(f.default_factory()))  # type: ignore[misc]
+    return out
 
 
 def read_config(path: Path) -> dict[str, Any]:
