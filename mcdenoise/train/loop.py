@@ -339,6 +339,11 @@ def _train(cfg: TrainConfig, out: Path, resume: bool, force: bool, on_step: Call
     wall = time.perf_counter() - t_start
     if rank == 0:
         _write_final(out, model, cfg, device, world, skipped, wall_before, wall, val)
+    if distributed:
+        # Every rank tears its process group down together, after rank 0's last write: a rank
+        # that destroyed gloo while its peer was still writing aborted at exit now and then
+        # ("terminate called without an active exception", seen once under load in CI).
+        dist.barrier()
     return TrainResult(out, cfg.steps, skipped, wall, val)
 
 
