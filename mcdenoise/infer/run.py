@@ -175,7 +175,7 @@ def image_exposure(inputs: Inputs, model: Denoiser, names: list[str], device: to
     """``(1,)`` autoexposure scale of the whole image for a model that has autoexposure, so every
     tile is scaled alike (a tile's own scale would differ and leave seams); None otherwise. A
     sample model's is measured on the pixel means of its radiance, which is what it measures too."""
-    if getattr(getattr(model, "config", None), "autoexposure", None) is None:
+    if model.autoexposure is None:
         return None
     box = (0, 0, inputs.height, inputs.width)
     if model.input_kind == "pixels":

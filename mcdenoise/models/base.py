@@ -39,15 +39,18 @@ class Denoiser(nn.Module):
     def forward(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:  # (B, 3, H, W)
         raise NotImplementedError
 
+    @property
+    def autoexposure(self) -> float | None:
+        """The configuration's autoexposure key (:mod:`mcdenoise.models.exposure`); None without."""
+        return getattr(self.config, "autoexposure", None)
+
     def exposure_of(self, batch: dict[str, torch.Tensor]) -> torch.Tensor | None:
-        """``(B,)`` autoexposure scale the model applies to ``batch`` (:mod:`mcdenoise.models.exposure`),
-        measured on :meth:`exposure_colour` or given as ``batch["exposure_scale"]``; None for a
-        model whose config has no ``autoexposure`` key. Tiled inference measures it on the whole
-        image and gives it to every tile."""
-        key = getattr(self.config, "autoexposure", None)
-        if key is None:
+        """``(B,)`` autoexposure scale the model applies to ``batch``, measured on
+        :meth:`exposure_colour` or given as ``batch["exposure_scale"]``; None for a model without
+        a key. Tiled inference measures it on the whole image and gives it to every tile."""
+        if self.autoexposure is None:
             return None
-        return batch_exposure(batch, self.exposure_colour(batch), key)
+        return batch_exposure(batch, self.exposure_colour(batch), self.autoexposure)
 
     def exposure_colour(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
         """The radiance the autoexposure is measured on: ``(B, 3, H, W)`` or ``(B, S, 3, H, W)``."""

@@ -45,20 +45,16 @@ def scale_batch(batch: dict[str, torch.Tensor], scale: torch.Tensor) -> dict[str
     square (:func:`~mcdenoise.data.channels.exposure_power`); other entries as they are."""
     out = dict(batch)
     for name, t in batch.items():
-        if name == EXPOSURE_SCALE or not isinstance(t, torch.Tensor) or t.dim() < 3:
-            continue
-        p = exposure_power(name)
+        p = exposure_power(name)  # 0 for guides, scene features and the scale itself
         if p:
             s = scale.to(t.dtype).view(-1, *([1] * (t.dim() - 1)))
             out[name] = t * s ** p
     return out
 
 
-def batch_exposure(batch: dict[str, torch.Tensor], colour: torch.Tensor, key: float | None) -> torch.Tensor | None:
+def batch_exposure(batch: dict[str, torch.Tensor], colour: torch.Tensor, key: float) -> torch.Tensor:
     """The ``(B,)`` scale for ``batch``: the precomputed ``batch["exposure_scale"]`` when given, else
-    measured on ``colour``; None when the model has no autoexposure (``key`` None)."""
-    if key is None:
-        return None
+    measured on ``colour``."""
     given = batch.get(EXPOSURE_SCALE)
     if given is not None:
         return given.reshape(-1).to(colour.device, torch.promote_types(colour.dtype, torch.float32))
