@@ -270,3 +270,109 @@ def test_noisy_clamp_min_bounds_a_spike_that_plain_oidn_keeps() -> None:
     batch["oidn_pf"] = batch["oidn"] * 1.5 + 0.1  # prefiltered brighter everywhere: min is plain OIDN
     with torch.no_grad():
         torch.testing.assert_close(model(batch), base(batch), rtol=0, atol=0)
+
+
+def _with_kernel_candidate(seed: int = 0) -> torch.nn.Module:
+    """An ``ens_kpcn`` combiner with its weight network randomised far from the identity start."""
+    torch.manual_seed(seed)
+    model = build_model("combine", "ens_kpcn")
+    with torch.no_grad():
+        for p in model.net.parameters():
+            p.normal_(0, 0.5)
+    return model.eval()
+
+
+def test_the_kernel_candidate_combiner_stays_within_its_four_candidates() -> None:
+    """Catches a kernel candidate outside the partition of unity (its weight not normalised with
+    the others, or the candidate list and the weight channels out of step): the output would leave
+    the range of OIDN, prefiltered OIDN, the clamped noisy mean and the kernel model's output."""
+    model = _with_kernel_candidate()
+    batch = synthetic_batch(model, height=21, width=27, generator=torch.Generator().manual_seed(5))
+    batch["radiance"] = batch["radiance"] * torch.exp(torch.randn_like(batch["radiance"]) * 3)
+    with torch.no_grad():
+        kernel = model.kernel_output(batch)
+        out = model(batch)
+        cands = torch.stack(model.candidates(batch, kernel))
+    assert cands.shape[0] == 4 and model.net.final.weight.shape[0] == 4
+    with torch.no_grad():
+        weights = model.weights(batch, kernel)
+    torch.testing.assert_close(weights.sum(1), torch.ones_like(weights[:, 0]))
+    assert float(weights[:, 3].mean()) > 1e-3  # the randomised network does use the kernel candidate
+    assert (out <= cands.amax(0) * (1 + 1e-5) + 1e-6).all() and (out >= cands.amin(0) * (1 - 1e-5) - 1e-6).all()
+
+
+def test_the_kernel_model_stays_frozen_while_the_weight_network_trains() -> None:
+    """Catches combiner training moving the kernel model it was given (its weights are a shipped
+    model's; a step on the combiner's loss must leave them bit-identical) and a kernel model left in
+    training mode by ``model.train()``."""
+    model = _with_kernel_candidate(1).train()
+    assert not model.kernel_model.training
+    before = {k: v.clone() for k, v in model.kernel_model.state_dict().items()}
+    opt = torch.optim.Adam([p for p in model.parameters() if p.requires_grad], lr=1e-2)
+    batch = synthetic_batch(model, height=16, width=16, generator=torch.Generator().manual_seed(2))
+    loss = model(batch).square().mean()
+    loss.backward()
+    assert all(p.grad is not None and bool(p.grad.abs().sum() > 0) for p in model.net.parameters())
+    opt.step()
+    for k, v in model.kernel_model.state_dict().items():
+        assert torch.equal(v, before[k]), k
+
+
+def test_a_kernel_candidate_combiner_rebuilds_from_its_file_alone(tmp_path: Path) -> None:
+    """Catches a combiner whose file does not carry its kernel model's configuration (it would
+    rebuild the preset's kernel model, which the saved tensors may not fit, or fit with other
+    rules), and an autoexposure that tiled inference cannot see through the combiner."""
+    import json
+
+    from safetensors.torch import save_file
+
+    from mcdenoise.models.weights import load_denoiser, model_from_config
+
+    cfg = {"kernel_candidate": "kpcn:pixel", "kernel_candidate_config": {"autoexposure": 0.18, "kernel_size": 7}}
+    model = model_from_config("combine", "ens_kpcn", cfg)
+    assert model.kernel_model.config.kernel_size == 7 and model.autoexposure == 0.18
+    path = tmp_path / "c.safetensors"
+    save_file({k: v.contiguous() for k, v in model.state_dict().items()}, str(path),
+              metadata={"model": "combine", "preset": "ens_kpcn", "model_config": json.dumps(cfg)})
+    back, _ = load_denoiser(path)
+    assert back.kernel_model.config.kernel_size == 7 and back.autoexposure == 0.18
+    for k, v in model.state_dict().items():
+        assert torch.equal(v, back.state_dict()[k]), k
+
+
+def test_kernel_candidate_tiles_are_seam_free() -> None:
+    """Catches tiled inference of a combiner whose kernel model has autoexposure measuring each tile's
+    own scale (the combiner must expose its kernel model's key, so the tile driver measures the whole
+    image once), and a receptive-field probe blind to the kernel model (its output computed without
+    input gradients: the probe then plans tile margins for the weight network alone)."""
+    from mcdenoise.infer.receptive import measure_receptive_field
+    from mcdenoise.infer.run import denoise_inputs
+    from mcdenoise.infer.sources import from_arrays
+    from mcdenoise.models.weights import model_from_config
+
+    torch.manual_seed(4)
+    model = model_from_config("combine", "ens_kpcn", {"kernel_candidate_config": {"autoexposure": 0.18}})
+    with torch.no_grad():
+        for p in model.net.parameters():
+            p.normal_(0, 0.3)
+    model = model.eval()
+    h, w = 64, 72
+    rng = np.random.default_rng(0)
+    colour = rng.random((3, h, w), dtype=np.float32) * 0.2
+    colour[:, :, w // 2 :] *= 30  # a bright half: a tile's own exposure would differ a lot
+    albedo = np.full((3, h, w), 0.5, np.float32)
+    normal = np.zeros((3, h, w), np.float32)
+    normal[2] = 1
+    depth = np.ones((1, h, w), np.float32) * 2
+    feats = {"diffuse": colour * 0.7, "specular": colour * 0.3}
+
+    def run(tile):
+        inp = from_arrays(colour, albedo=albedo, normal=normal, depth=depth, features=feats)
+        return denoise_inputs(inp, model, device="cpu", tile=tile, progress=False)
+
+    whole, info_whole = run(None)
+    tiled, info = run(16)
+    assert len(info.plan) > 1 and len(info_whole.plan) == 1
+    assert np.abs(tiled - whole).max() / np.abs(whole).max() < 1e-4
+    # The kernel model reads 10 px around a pixel and the weight network reads its output: the two add.
+    assert measure_receptive_field(model) > measure_receptive_field(build_model("combine", "ens"))

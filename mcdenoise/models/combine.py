@@ -90,6 +90,18 @@ class CombineConfig:
     ``scripts/oidn_variants_probe.py``): better than plain OIDN on most images, yet 13-30x worse in
     relMSE on one rich-world image of eight, where a bright bulb bleeds into a dark sky whose clean
     guides show no edge -- a per-pixel choice between the two is what the network learns."""
+    kernel_candidate: str = ""
+    """``"name:preset"`` of a registered pixel model (``"kpcn:pixel"``) whose output is one more
+    candidate, the last; empty: none. The model is part of the combiner (its weights are saved in
+    the combiner's file) and frozen: training moves only the weight network. Why: on our own
+    held-out images (detail_ref 1-2 val, 8 spp) OIDN 2.5.1 spreads small bright emitters into
+    halos over dark surroundings (relMSE 44, 377, 2.05 where the noisy input has 21.6, 9.1, 3.1),
+    while kpcn-pixel's 9x9 kernels cannot carry an emitter further than 4 pixels (3.95, 0.64,
+    0.079); the per-pixel oracle over OIDN and kpcn-pixel is 0.61x OIDN's relMSE there, and 0.49x
+    with the noisy mean (docs/models/combine.md)."""
+    kernel_candidate_config: dict | None = None
+    """The candidate model's configuration fields over its preset (a shipped card's
+    ``model_config``), so the combiner's file alone rebuilds it."""
 
 
 #: Candidate channels, in the order of the predicted weights (``prefiltered``: PF_CANDIDATES).
@@ -108,9 +120,11 @@ def _lum(x: torch.Tensor) -> torch.Tensor:
     return 0.2126 * x[:, 0:1] + 0.7152 * x[:, 1:2] + 0.0722 * x[:, 2:3]
 
 
-def combine_features(batch: dict[str, torch.Tensor], use_variance: bool = False, prefiltered: bool = False) -> torch.Tensor:
-    """``(B, N_FEATURES [+ N_VARIANCE_FEATURES] [+ N_PF_FEATURES], H, W)`` inputs of the weight
-    network, exposure-normalised where it matters (log colour; ratios, not differences)."""
+def combine_features(batch: dict[str, torch.Tensor], use_variance: bool = False, prefiltered: bool = False,
+                     kernel: torch.Tensor | None = None) -> torch.Tensor:
+    """``(B, N_FEATURES [+ N_VARIANCE_FEATURES] [+ N_PF_FEATURES] [+ N_PF_FEATURES], H, W)`` inputs
+    of the weight network, exposure-normalised where it matters (log colour; ratios, not
+    differences). ``kernel``: the kernel-model candidate ``(B, 3, H, W)``, described like ``oidn_pf``."""
     oidn = batch["oidn"].clamp_min(0)
     noisy = batch["radiance"].clamp_min(0)
     lo, ln = _lum(oidn), _lum(noisy)
@@ -125,6 +139,9 @@ def combine_features(batch: dict[str, torch.Tensor], use_variance: bool = False,
     if prefiltered:
         pf = batch["oidn_pf"].clamp_min(0)
         feats += [torch.log1p(pf), torch.log1p((_lum(pf) - lo).abs() / (lo + EPS))]
+    if kernel is not None:
+        kc = kernel.clamp_min(0)
+        feats += [torch.log1p(kc), torch.log1p((_lum(kc) - lo).abs() / (lo + EPS))]
     return torch.cat(feats, dim=1)
 
 
@@ -157,7 +174,18 @@ class Combine(Denoiser):
         w = config.width
         n_in = N_FEATURES + (N_VARIANCE_FEATURES if config.use_variance else 0) + (N_PF_FEATURES if config.prefiltered else 0)
         self.names = PF_CANDIDATES if config.prefiltered else CANDIDATES
-        self.net = UNet(n_in, len(self.names) * k2, [(w, w)] * config.levels, (w, w), [(w, w)] * config.levels)
+        self.kernel_model: Denoiser | None = None
+        if config.kernel_candidate:
+            from mcdenoise.models.weights import model_from_config  # the registry sits above the models
+
+            name, _, preset = config.kernel_candidate.partition(":")
+            sub = model_from_config(name, preset or "small", config.kernel_candidate_config)
+            if sub.input_kind != "pixels":
+                raise ValueError(f"kernel_candidate {config.kernel_candidate!r} reads samples; the combiner takes pixel models only")
+            self.kernel_model = sub.requires_grad_(False).eval()
+            n_in += N_PF_FEATURES
+        n_cand = len(self.names) + (self.kernel_model is not None)
+        self.net = UNet(n_in, n_cand * k2, [(w, w)] * config.levels, (w, w), [(w, w)] * config.levels)
         if config.noisy_clamp_ref not in ("oidn", "min"):
             raise ValueError(f"noisy_clamp_ref must be 'oidn' or 'min', got {config.noisy_clamp_ref!r}")
         if not 0 < config.shrink <= 1:
@@ -171,14 +199,43 @@ class Combine(Denoiser):
             self.net.final.bias[k2 // 2] = s / (1 - s / LOGIT_BOUND)  # the raw value that soft-clips to s
 
     def required_channels(self) -> list[str]:
-        return list(self.names) + (["radiance_variance"] if self.config.use_variance else []) + ["albedo", "normal"]
+        own = list(self.names) + (["radiance_variance"] if self.config.use_variance else []) + ["albedo", "normal"]
+        sub = self.kernel_model.required_channels() if self.kernel_model is not None else []
+        return own + [c for c in sub if c not in own]
 
-    def features(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
-        return combine_features(batch, self.config.use_variance, self.config.prefiltered)
+    def train(self, mode: bool = True) -> "Combine":
+        super().train(mode)
+        if self.kernel_model is not None:  # frozen: never in training mode
+            self.kernel_model.eval()
+        return self
 
-    def weights(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
-        """(B, len(self.names) * k * k, H, W) softmax weights."""
-        raw = self.net(self.features(batch))
+    @property
+    def autoexposure(self) -> float | None:
+        """The kernel candidate's key: tiled inference then gives every tile the whole image's scale."""
+        return self.kernel_model.autoexposure if self.kernel_model is not None else None
+
+    def exposure_colour(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
+        return self.kernel_model.exposure_colour(batch) if self.kernel_model is not None else batch["radiance"]
+
+    def conv_trunks(self) -> list[str]:
+        own = ["net"]
+        sub = self.kernel_model.conv_trunks() if self.kernel_model is not None else []
+        return own + [f"kernel_model.{n}" for n in sub]
+
+    def kernel_output(self, batch: dict[str, torch.Tensor]) -> torch.Tensor | None:
+        """``(B, 3, H, W)`` the kernel candidate's output (None without one). Its parameters are
+        frozen, but gradients with respect to the inputs pass (the receptive-field probe of tiled
+        inference follows them; a training batch needs none, so no graph is built)."""
+        if self.kernel_model is None:
+            return None
+        return self.kernel_model(batch).to(batch["oidn"].dtype)
+
+    def features(self, batch: dict[str, torch.Tensor], kernel: torch.Tensor | None = None) -> torch.Tensor:
+        return combine_features(batch, self.config.use_variance, self.config.prefiltered, kernel)
+
+    def weights(self, batch: dict[str, torch.Tensor], kernel: torch.Tensor | None = None) -> torch.Tensor:
+        """(B, n_candidates * k * k, H, W) softmax weights (``kernel``: see :meth:`kernel_output`)."""
+        raw = self.net(self.features(batch, kernel))
         w = torch.softmax(raw / (1 + raw.abs() / LOGIT_BOUND), dim=1)
         a = self.config.shrink
         if a < 1:  # OIDN's centre tap is channel k*k // 2 (OIDN is the first candidate)
@@ -186,8 +243,9 @@ class Combine(Denoiser):
             w = a * w + torch.nn.functional.one_hot(torch.tensor(centre), w.shape[1]).to(w).view(1, -1, 1, 1) * (1 - a)
         return w
 
-    def candidates(self, batch: dict[str, torch.Tensor]) -> list[torch.Tensor]:
-        """The candidate images, in ``self.names`` order (the noisy one clamped, see the config)."""
+    def candidates(self, batch: dict[str, torch.Tensor], kernel: torch.Tensor | None = None) -> list[torch.Tensor]:
+        """The candidate images, in ``self.names`` order (the noisy one clamped, see the config),
+        then ``kernel`` when given."""
         oidn, noisy = batch["oidn"], batch["radiance"]
         if self.config.noisy_clamp > 0:
             ref = oidn
@@ -195,10 +253,12 @@ class Combine(Denoiser):
                 ref = torch.minimum(oidn, batch["oidn_pf"])
             bright = F.max_pool2d(F.pad(ref.clamp_min(0), (1, 1, 1, 1), mode="replicate"), 3, stride=1)
             noisy = torch.minimum(noisy, self.config.noisy_clamp * bright + EPS)
-        return [oidn, batch["oidn_pf"], noisy] if self.config.prefiltered else [oidn, noisy]
+        out = [oidn, batch["oidn_pf"], noisy] if self.config.prefiltered else [oidn, noisy]
+        return out + ([kernel] if kernel is not None else [])
 
     def forward(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
-        out = apply_weights(self.candidates(batch), self.weights(batch), self.config.kernel)
+        kernel = self.kernel_output(batch)
+        out = apply_weights(self.candidates(batch, kernel), self.weights(batch, kernel), self.config.kernel)
         t = self.config.miss_halo
         if t > 0:
             noisy = batch["radiance"]
@@ -221,6 +281,8 @@ _PAPER = ("Back et al. 2020 (deep combiner), Zheng et al. 2021 (ensemble denoisi
         "small_k3": lambda: CombineConfig(kernel=3),
         "paper": lambda: CombineConfig(width=32, levels=3, kernel=5, use_variance=True),
         "ens": lambda: CombineConfig(prefiltered=True),
+        "ens_kpcn": lambda: CombineConfig(prefiltered=True, noisy_clamp=1.0, noisy_clamp_ref="min", kernel_candidate="kpcn:pixel"),
+        "kpcn": lambda: CombineConfig(noisy_clamp=1.0, kernel_candidate="kpcn:pixel"),
     },
     paper=_PAPER,
     description="U-Net -> per-pixel softmax kernels over OIDN 2.5.1's output and the noisy mean",
