@@ -6,6 +6,12 @@ itself from its shipped weights, frozen.
     python scripts/combine_kernel_init.py combine-ens kpcn-pixel campaigns/c10/combine_ens_kpcn_init.safetensors \
         --preset ens_kpcn --set shrink=1.0
 
+With ``--fresh`` the weight network is a new one (the identity start on OIDN) and the combiner
+argument only gives the configuration:
+
+    python scripts/combine_kernel_init.py combine-ens kpcn-pixel campaigns/c10/combine_kpcn_init.safetensors \
+        --preset kpcn --fresh --set shrink=1.0 prefiltered=false
+
 The new first-layer input channels (the candidate's log colour and deviation from OIDN) come last
 and start at zero; the candidate's weight logit is the noisy candidate's bias (its output channel
 is the last). Prints what was copied.
@@ -38,6 +44,7 @@ def main() -> None:
     ap.add_argument("dst")
     ap.add_argument("--preset", default="ens_kpcn")
     ap.add_argument("--set", nargs="+", default=[], metavar="FIELD=VALUE")
+    ap.add_argument("--fresh", action="store_true", help="a new weight network (identity start on OIDN)")
     a = ap.parse_args()
     cmeta, cten = _read(a.combiner)
     kmeta, kten = _read(a.kernel)
@@ -57,6 +64,8 @@ def main() -> None:
             state[k] = kten[k.removeprefix("kernel_model.")].clone()
             continue
         old = cten[k]
+        if a.fresh:
+            continue
         if old.shape == t.shape:
             state[k] = old.clone()
             continue

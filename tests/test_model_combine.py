@@ -376,3 +376,23 @@ def test_kernel_candidate_tiles_are_seam_free() -> None:
     assert np.abs(tiled - whole).max() / np.abs(whole).max() < 1e-4
     # The kernel model reads 10 px around a pixel and the weight network reads its output: the two add.
     assert measure_receptive_field(model) > measure_receptive_field(build_model("combine", "ens"))
+
+
+def test_kernel_clamp_bounds_a_spread_firefly_but_not_a_darker_candidate() -> None:
+    """Catches the kernel candidate's clamp missing (a firefly the kernel model spread reaches the
+    output at full strength) or cutting from below (the kernel model's darker value beside an OIDN
+    halo, the reason it is a candidate, would be lost)."""
+    from mcdenoise.models.weights import model_from_config
+
+    model = model_from_config("combine", "ens_kpcn", {"kernel_clamp": 1.0}).double().eval()
+    batch = synthetic_batch(model, height=12, width=12, generator=torch.Generator().manual_seed(1))
+    batch = {k: v.double() for k, v in batch.items()}
+    batch["oidn"] = torch.full_like(batch["oidn"], 2.0)
+    batch["oidn_pf"] = torch.full_like(batch["oidn"], 1.0)
+    kernel = torch.full_like(batch["oidn"], 0.5)
+    kernel[..., 5, 5] = 40.0  # a spread firefly
+    cands = model.candidates(batch, kernel)
+    assert cands[3][..., 5, 5].max() <= 1.0 + 1e-3  # the dimmer OIDN candidate's neighbourhood
+    assert torch.equal(cands[3][..., 0, 0], kernel[..., 0, 0])  # darker than OIDN: untouched
+    off = model_from_config("combine", "ens_kpcn", {}).double()
+    assert float(off.candidates(batch, kernel)[3][..., 5, 5].max()) == 40.0

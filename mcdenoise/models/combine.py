@@ -99,6 +99,12 @@ class CombineConfig:
     while kpcn-pixel's 9x9 kernels cannot carry an emitter further than 4 pixels (3.95, 0.64,
     0.079); the per-pixel oracle over OIDN and kpcn-pixel is 0.61x OIDN's relMSE there, and 0.49x
     with the noisy mean (docs/models/combine.md)."""
+    kernel_clamp: float = 0.0
+    """The kernel candidate is clamped like the noisy one (``noisy_clamp``'s reference, this
+    factor; 0 = off). Why: a kernel model's failure is the noisy input's, an overshoot, where one
+    sample of a few hit a tiny bright thing and its kernel spreads that firefly (kpcn-pixel: relMSE
+    3339 on a held-out image where OIDN has 0.095), while what it adds is darker than OIDN's halos,
+    which no upper clamp touches. The weight network still reads the unclamped output."""
     kernel_candidate_config: dict | None = None
     """The candidate model's configuration fields over its preset (a shipped card's
     ``model_config``), so the combiner's file alone rebuilds it."""
@@ -247,12 +253,16 @@ class Combine(Denoiser):
         """The candidate images, in ``self.names`` order (the noisy one clamped, see the config),
         then ``kernel`` when given."""
         oidn, noisy = batch["oidn"], batch["radiance"]
-        if self.config.noisy_clamp > 0:
+        kc = self.config.kernel_clamp if kernel is not None else 0.0
+        if self.config.noisy_clamp > 0 or kc > 0:
             ref = oidn
             if self.config.noisy_clamp_ref == "min" and self.config.prefiltered:
                 ref = torch.minimum(oidn, batch["oidn_pf"])
             bright = F.max_pool2d(F.pad(ref.clamp_min(0), (1, 1, 1, 1), mode="replicate"), 3, stride=1)
-            noisy = torch.minimum(noisy, self.config.noisy_clamp * bright + EPS)
+            if self.config.noisy_clamp > 0:
+                noisy = torch.minimum(noisy, self.config.noisy_clamp * bright + EPS)
+            if kc > 0:
+                kernel = torch.minimum(kernel, kc * bright + EPS)
         out = [oidn, batch["oidn_pf"], noisy] if self.config.prefiltered else [oidn, noisy]
         return out + ([kernel] if kernel is not None else [])
 
