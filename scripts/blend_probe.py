@@ -19,6 +19,10 @@ from mcdenoise.eval.metrics import psnr, relmse
 from mcdenoise.eval.oidn import oidn_denoise
 
 
+#: Channels passed beside colour, albedo and normal when an image has them.
+EXTRA = ("depth", "diffuse", "specular")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("roots", nargs="+", help="image folders under these; a dataset (manifest.json) gives its val split")
@@ -40,15 +44,19 @@ def main() -> None:
         for f in folders:
             im = ImageFolder(f)
             ref = im.read_reference(["radiance"])["radiance"]
+            # What a kernel-model candidate (combine ens_kpcn) also reads, where the image has it.
+            names = ["radiance", "albedo", "normal"] + [c for c in EXTRA if c in im.meta.channels]
             if im.samples is None:  # a pixel-only image (e.g. a converted Cycles render): its own spp only
                 if im.meta.spp != spp:
                     continue
-                px = im.read_noisy(["radiance", "albedo", "normal"])
+                px = im.read_noisy(names)
             else:
-                smp = im.samples.read(["radiance", "albedo", "normal"], samples=list(range(spp)))
+                smp = im.samples.read(names, samples=list(range(spp)))
                 px = {k: v.mean(axis=0) for k, v in smp.items()}
             oidn = oidn_denoise(px["radiance"], px["albedo"], px["normal"], threads=2)
-            out = np.asarray(mcdenoise.denoise(px["radiance"], px["albedo"], px["normal"], model=a.model))
+            out = np.asarray(mcdenoise.denoise(px["radiance"], px["albedo"], px["normal"], depth=px.get("depth"),
+                                               features={c: px[c] for c in ("diffuse", "specular") if c in px},
+                                               model=a.model))
             r0, p0 = relmse(oidn, ref), psnr(oidn, ref)
             for al in a.alphas:
                 mix = oidn + al * (out - oidn)

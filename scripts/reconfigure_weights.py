@@ -28,6 +28,11 @@ def main() -> None:
     with safe_open(a.src, "pt") as f:
         meta = dict(f.metadata() or {})
         tensors = {k: f.get_tensor(k) for k in f.keys()}
+    if "model_config" not in meta:  # a run's model.safetensors: its configuration is the run's config.json
+        from pathlib import Path
+
+        run = json.loads((Path(a.src).parent / "config.json").read_text())
+        meta.update(model=run["train"]["model"], preset=run["train"]["preset"], model_config=json.dumps(run["model_config"]))
     cfg = json.loads(meta["model_config"])
     for item in a.set:
         key, _, raw = item.partition("=")

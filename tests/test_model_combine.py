@@ -389,10 +389,13 @@ def test_kernel_clamp_bounds_a_spread_firefly_but_not_a_darker_candidate() -> No
     batch = {k: v.double() for k, v in batch.items()}
     batch["oidn"] = torch.full_like(batch["oidn"], 2.0)
     batch["oidn_pf"] = torch.full_like(batch["oidn"], 1.0)
+    batch["oidn_pf"][..., 6, 6] = 0.2  # a dark pixel beside the firefly: a neighbourhood would not bind
     kernel = torch.full_like(batch["oidn"], 0.5)
     kernel[..., 5, 5] = 40.0  # a spread firefly
+    kernel[..., 6, 6] = 0.9
     cands = model.candidates(batch, kernel)
-    assert cands[3][..., 5, 5].max() <= 1.0 + 1e-3  # the dimmer OIDN candidate's neighbourhood
+    assert cands[3][..., 5, 5].max() <= 1.0 + 1e-3  # the dimmer OIDN candidate at that pixel
+    assert cands[3][..., 6, 6].max() <= 0.2 + 1e-3
     assert torch.equal(cands[3][..., 0, 0], kernel[..., 0, 0])  # darker than OIDN: untouched
     off = model_from_config("combine", "ens_kpcn", {}).double()
     assert float(off.candidates(batch, kernel)[3][..., 5, 5].max()) == 40.0
