@@ -248,10 +248,13 @@ def test_whole_path_of_a_combiner_counts_every_oidn_run_it_needs() -> None:
     res = _fake_result()
     e = lambda m, t: {"method": m, "width": 1920, "height": 1080, "spp": None, "status": "ok", "median_s": t,
                       "times_s": [t], "peak_bytes": 2**20}
-    res["entries"] += [e("combine:small", 1.0), e("combine:ens", 1.2)]
+    res["entries"] += [e("combine:small", 1.0), e("combine:ens", 1.2), e("combine:ens_kpcn", 5.0), e("combine:kpcn", 5.0)]
     text = markdown(res)
     assert "combine:small 4,000 (1.33x OIDN high; with oidn:high)" in text
     assert "combine:ens not measured (needs oidn:high and oidn:high-pf)" in text
+    # every preset with the prefiltered candidate, not a list of names (campaign 10's ens_kpcn was missed)
+    assert "combine:ens_kpcn not measured (needs oidn:high and oidn:high-pf)" in text
+    assert "combine:kpcn 8,000 (2.67x OIDN high; with oidn:high)" in text
     res["entries"].append(e("oidn:high-pf", 6.0))
     text = markdown(res)
     assert "(3.4x OIDN high; with oidn:high + oidn:high-pf)" in text

@@ -22,8 +22,17 @@ def _ok(res: dict[str, Any]) -> list[dict[str, Any]]:
     return [e for e in res["entries"] if e["status"] == "ok"]
 
 
-#: Combiner presets whose candidates include OIDN on prefiltered guides (``oidn:high-pf``).
-PF_COMBINERS = ("combine:ens",)
+def _needs_prefiltered_oidn(method: str) -> bool:
+    """Whether a ``combine:PRESET`` entry's candidates include OIDN on prefiltered guides
+    (``oidn:high-pf``): read from the preset's configuration, so every such preset counts."""
+    name, _, preset = method.removesuffix(" api").partition(":")
+    if name != "combine":
+        return False
+    from mcdenoise.models.registry import MODELS, _load_all
+
+    _load_all()
+    entry = MODELS.get(name)
+    return bool(entry and preset in entry.presets and getattr(entry.config(preset), "prefiltered", False))
 
 
 def _oidn(res: dict[str, Any], w: int, h: int, quality: str) -> float | None:
@@ -145,7 +154,7 @@ def markdown(res: dict[str, Any], command: str = "") -> str:
             for e in comb:
                 # the OIDN runs the combiner's candidates need: high, and prefiltered high for `ens`
                 # (its API row too: the API is given the candidates like the bare call)
-                need = ["high"] + (["high-pf"] if e["method"].removesuffix(" api") in PF_COMBINERS else [])
+                need = ["high"] + (["high-pf"] if _needs_prefiltered_oidn(e["method"]) else [])
                 pre = [_oidn(res, w, h, q) for q in need]
                 if None in pre:
                     paths.append(f"{e['method']} not measured (needs oidn:{' and oidn:'.join(need)})")
