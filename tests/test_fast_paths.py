@@ -226,3 +226,25 @@ def test_import_puts_large_tensors_on_huge_pages() -> None:
         off = int(subprocess.run([sys.executable, "-c", code], env={**env, "THP_MEM_ALLOC_ENABLE": "0"},
                                  capture_output=True, text=True, check=True).stdout)
         assert off < on
+
+
+@pytest.mark.parametrize("preset", ["ens_kpcn", "kpcn"])
+def test_a_nested_kernel_model_keeps_its_trunk_layout_rule(preset: str) -> None:
+    """Bug caught (campaign 10): a combiner's kernel candidate (kpcn) had its bfloat16 trunks'
+    outputs converted back to the contiguous layout because the combiner itself does not declare
+    ``trunk_outputs_any_layout`` (2.2x slower at 1080p); the nearest declaring module must decide.
+    Also the fast paths of a combiner with a nested model: float64 equality and bfloat16 closeness."""
+    from mcdenoise.models.inference import ReducedPrecision
+
+    ref, fast, batch = _pair("combine", preset)
+    torch.testing.assert_close(denoise_batch(fast, batch), denoise_batch(ref, batch, fast=False), rtol=1e-9, atol=1e-11)
+    torch.manual_seed(0)
+    f32 = prepare_inference(build_model("combine", preset), fast=True)
+    low = prepare_inference(copy.deepcopy(f32), fast=True, precision="bfloat16")
+    restore = {n: m.restore_output for n, m in low.named_modules() if isinstance(m, ReducedPrecision)}
+    assert restore["net"] is True
+    kernel_trunks = [n for n in restore if n.startswith("kernel_model.")]
+    assert kernel_trunks and not any(restore[n] for n in kernel_trunks)
+    batch = synthetic_batch(f32, height=20, width=18, generator=torch.Generator().manual_seed(1))
+    want, got = denoise_batch(f32, batch), denoise_batch(low, batch)
+    assert ((got - want).abs().max() / want.abs().max()).item() < 0.05

@@ -123,10 +123,22 @@ class ReducedPrecision(nn.Module):
         return up(out) if self.restore_output else out
 
 
+def _restores_layout(model: nn.Module, name: str) -> bool:
+    """Whether trunk ``name``'s output must come back in the contiguous layout: the nearest module
+    on its path that declares ``trunk_outputs_any_layout`` decides (a model nested in another, such
+    as a combiner's kernel candidate, keeps its own rule); none declares it: restore."""
+    parts = name.split(".")
+    for i in range(len(parts) - 1, -1, -1):
+        owner = model.get_submodule(".".join(parts[:i])) if i else model
+        if hasattr(owner, "trunk_outputs_any_layout"):
+            return not owner.trunk_outputs_any_layout
+    return True
+
+
 def _wrap_trunks(model: nn.Module, dtype: torch.dtype) -> int:
     names = model.conv_trunks() if hasattr(model, "conv_trunks") else []
-    restore = not getattr(model, "trunk_outputs_any_layout", False)
     for name in names:
+        restore = _restores_layout(model, name)
         parent_name, _, attr = name.rpartition(".")
         parent = model.get_submodule(parent_name) if parent_name else model
         child = parent.get_submodule(attr)
