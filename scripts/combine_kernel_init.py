@@ -26,6 +26,7 @@ from safetensors import safe_open
 from safetensors.torch import save_file
 
 from mcdenoise.models.weights import load_denoiser, model_from_config, shipped_name
+from reconfigure_weights import apply_sets  # scripts/ is on the path when a script runs
 
 
 def _read(spec: str) -> tuple[dict[str, str], dict[str, torch.Tensor]]:
@@ -50,12 +51,7 @@ def main() -> None:
     kmeta, kten = _read(a.kernel)
     cfg = json.loads(cmeta["model_config"])
     cfg.update(kernel_candidate=f"{kmeta['model']}:{kmeta['preset']}", kernel_candidate_config=json.loads(kmeta["model_config"]))
-    for item in a.set:
-        key, _, raw = item.partition("=")
-        try:
-            cfg[key] = json.loads(raw)
-        except ValueError:
-            cfg[key] = raw
+    cfg = apply_sets(cfg, a.set)
     model = model_from_config("combine", a.preset, cfg)
     state = model.state_dict()
     out_ch = model.net.final.weight.shape[0]

@@ -18,6 +18,17 @@ from safetensors.torch import save_file
 from mcdenoise.models.weights import model_from_config
 
 
+def apply_sets(cfg: dict, items: list[str]) -> dict:
+    """``cfg`` with each ``FIELD=VALUE`` of ``items`` set (VALUE as JSON where it parses, else a string)."""
+    for item in items:
+        key, _, raw = item.partition("=")
+        try:
+            cfg[key] = json.loads(raw)
+        except ValueError:
+            cfg[key] = raw
+    return cfg
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("src")
@@ -33,13 +44,7 @@ def main() -> None:
 
         run = json.loads((Path(a.src).parent / "config.json").read_text())
         meta.update(model=run["train"]["model"], preset=run["train"]["preset"], model_config=json.dumps(run["model_config"]))
-    cfg = json.loads(meta["model_config"])
-    for item in a.set:
-        key, _, raw = item.partition("=")
-        try:
-            cfg[key] = json.loads(raw)
-        except ValueError:
-            cfg[key] = raw
+    cfg = apply_sets(json.loads(meta["model_config"]), a.set)
     meta.update(model_config=json.dumps(cfg), step="0", preset=a.preset or meta.get("preset", ""))
     model = model_from_config(meta["model"], meta["preset"], cfg)  # refuses unknown fields
     model.load_state_dict(tensors, strict=True)

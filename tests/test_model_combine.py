@@ -356,15 +356,9 @@ def test_kernel_candidate_tiles_are_seam_free() -> None:
         for p in model.net.parameters():
             p.normal_(0, 0.3)
     model = model.eval()
-    h, w = 64, 72
-    rng = np.random.default_rng(0)
-    colour = rng.random((3, h, w), dtype=np.float32) * 0.2
-    colour[:, :, w // 2 :] *= 30  # a bright half: a tile's own exposure would differ a lot
-    albedo = np.full((3, h, w), 0.5, np.float32)
-    normal = np.zeros((3, h, w), np.float32)
-    normal[2] = 1
-    depth = np.ones((1, h, w), np.float32) * 2
-    feats = {"diffuse": colour * 0.7, "specular": colour * 0.3}
+    from test_model_exposure import bright_half_inputs
+
+    colour, albedo, normal, depth, feats = bright_half_inputs(64, 72)
 
     def run(tile):
         inp = from_arrays(colour, albedo=albedo, normal=normal, depth=depth, features=feats)

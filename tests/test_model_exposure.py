@@ -24,6 +24,19 @@ KEY = 0.18
 MODELS = [("kpcn", "small"), ("kpcn", "pixel"), ("wskp", "small"), ("sbmc", "small"), ("layer", "small")]
 
 
+def bright_half_inputs(h: int, w: int) -> tuple:
+    """Pixel inputs ``(colour, albedo, normal, depth, {diffuse, specular})`` whose right half is 30x
+    brighter: each tile's own autoexposure scale would differ a lot from the whole image's."""
+    rng = np.random.default_rng(0)
+    colour = rng.random((3, h, w), dtype=np.float32) * 0.2
+    colour[:, :, w // 2 :] *= 30
+    albedo = np.full((3, h, w), 0.5, np.float32)
+    normal = np.zeros((3, h, w), np.float32)
+    normal[2] = 1
+    depth = np.ones((1, h, w), np.float32) * 2
+    return colour, albedo, normal, depth, {"diffuse": colour * 0.7, "specular": colour * 0.3}
+
+
 def _model(preset: str, key: float | None, seed: int = 0, name: str = "kpcn") -> torch.nn.Module:
     torch.manual_seed(seed)
     m = build_model(name, preset, autoexposure=key).eval()
@@ -89,15 +102,7 @@ def test_tiles_use_the_whole_image_scale(name: str, preset: str) -> None:
     """Catches tiled inference that lets each tile measure its own exposure: a dark tile next to a
     bright one would be filtered at another brightness and leave a seam."""
     model = _model(preset, KEY, name=name).float()
-    h, w = 40, 44
-    rng = np.random.default_rng(0)
-    colour = rng.random((3, h, w), dtype=np.float32) * 0.2
-    colour[:, :, w // 2 :] *= 30  # a bright half: each tile's own scale would differ a lot
-    albedo = np.full((3, h, w), 0.5, np.float32)
-    normal = np.zeros((3, h, w), np.float32)
-    normal[2] = 1
-    depth = np.ones((1, h, w), np.float32) * 2
-    feats = {"diffuse": colour * 0.7, "specular": colour * 0.3}
+    colour, albedo, normal, depth, feats = bright_half_inputs(40, 44)
 
     def run(tile):
         inp = from_arrays(colour, albedo=albedo, normal=normal, depth=depth, features=feats)
