@@ -346,8 +346,6 @@ def test_kernel_candidate_tiles_are_seam_free() -> None:
     image once), and a receptive-field probe blind to the kernel model (its output computed without
     input gradients: the probe then plans tile margins for the weight network alone)."""
     from mcdenoise.infer.receptive import measure_receptive_field
-    from mcdenoise.infer.run import denoise_inputs
-    from mcdenoise.infer.sources import from_arrays
     from mcdenoise.models.weights import model_from_config
 
     torch.manual_seed(4)
@@ -356,18 +354,9 @@ def test_kernel_candidate_tiles_are_seam_free() -> None:
         for p in model.net.parameters():
             p.normal_(0, 0.3)
     model = model.eval()
-    from test_model_exposure import bright_half_inputs
+    from test_model_exposure import assert_tiles_match_whole
 
-    colour, albedo, normal, depth, feats = bright_half_inputs(64, 72)
-
-    def run(tile):
-        inp = from_arrays(colour, albedo=albedo, normal=normal, depth=depth, features=feats)
-        return denoise_inputs(inp, model, device="cpu", tile=tile, progress=False)
-
-    whole, info_whole = run(None)
-    tiled, info = run(16)
-    assert len(info.plan) > 1 and len(info_whole.plan) == 1
-    assert np.abs(tiled - whole).max() / np.abs(whole).max() < 1e-4
+    assert_tiles_match_whole(model, 64, 72)
     # The kernel model reads 10 px around a pixel and the weight network reads its output: the two add.
     assert measure_receptive_field(model) > measure_receptive_field(build_model("combine", "ens"))
 

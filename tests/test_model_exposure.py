@@ -37,6 +37,23 @@ def bright_half_inputs(h: int, w: int) -> tuple:
     return colour, albedo, normal, depth, {"diffuse": colour * 0.7, "specular": colour * 0.3}
 
 
+def assert_tiles_match_whole(model: torch.nn.Module, h: int, w: int) -> tuple:
+    """Denoise :func:`bright_half_inputs` whole and in 16-px tiles; assert the two agree (1e-4 of
+    the image maximum) and that tiling did cut the image. Returns the inputs."""
+    inputs = bright_half_inputs(h, w)
+    colour, albedo, normal, depth, feats = inputs
+
+    def run(tile):
+        inp = from_arrays(colour, albedo=albedo, normal=normal, depth=depth, features=feats)
+        return denoise_inputs(inp, model, device="cpu", tile=tile, progress=False)
+
+    whole, info_whole = run(None)
+    tiled, info = run(16)
+    assert len(info.plan) > 1 and len(info_whole.plan) == 1
+    assert np.abs(tiled - whole).max() / np.abs(whole).max() < 1e-4
+    return inputs
+
+
 def _model(preset: str, key: float | None, seed: int = 0, name: str = "kpcn") -> torch.nn.Module:
     torch.manual_seed(seed)
     m = build_model(name, preset, autoexposure=key).eval()
@@ -102,16 +119,7 @@ def test_tiles_use_the_whole_image_scale(name: str, preset: str) -> None:
     """Catches tiled inference that lets each tile measure its own exposure: a dark tile next to a
     bright one would be filtered at another brightness and leave a seam."""
     model = _model(preset, KEY, name=name).float()
-    colour, albedo, normal, depth, feats = bright_half_inputs(40, 44)
-
-    def run(tile):
-        inp = from_arrays(colour, albedo=albedo, normal=normal, depth=depth, features=feats)
-        return denoise_inputs(inp, model, device="cpu", tile=tile, progress=False)
-
-    whole, info_whole = run(None)
-    tiled, info = run(16)
-    assert len(info.plan) > 1 and len(info_whole.plan) == 1
-    assert np.abs(tiled - whole).max() / np.abs(whole).max() < 1e-4
+    colour, _, _, _, feats = assert_tiles_match_whole(model, 40, 44)
     # And the scale is the model's own measure of the whole image.
     batch = {n: torch.from_numpy(a)[None] for n, a in (("diffuse", feats["diffuse"]), ("specular", feats["specular"]),
                                                         ("radiance", colour))}
