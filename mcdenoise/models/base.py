@@ -17,7 +17,7 @@ from torch import nn
 
 from mcdenoise.models.exposure import batch_exposure
 
-__all__ = ["Denoiser", "ModelEntry", "MODELS", "register_model"]
+__all__ = ["Denoiser", "ModelEntry", "MODELS", "register_model", "coerce_field", "build_from_fields"]
 
 
 class Denoiser(nn.Module):
@@ -86,6 +86,30 @@ class ModelEntry:
 
 
 MODELS: dict[str, ModelEntry] = {}
+
+
+def coerce_field(default: Any, value: Any) -> Any:
+    """JSON turned tuples into lists; give a field back the container type of the preset's value."""
+    if isinstance(default, tuple) and isinstance(value, list):
+        return tuple(coerce_field(d, v) for d, v in zip(default, value)) if len(default) == len(value) else tuple(value)
+    return value
+
+
+def build_from_fields(name: str, preset: str, fields: dict[str, Any] | None = None) -> "Denoiser":
+    """Build registered model ``name`` from ``preset`` with saved configuration ``fields`` over it
+    (a card's or a run's ``model_config``). The model's module must be registered already
+    (:mod:`mcdenoise.models.registry` loads them all); KeyError names what is missing."""
+    if name not in MODELS:
+        raise KeyError(f"model {name!r} is not registered (registered: {', '.join(sorted(MODELS)) or 'none'})")
+    entry = MODELS[name]
+    cfg = entry.config(preset)
+    if fields:
+        names = {f.name for f in dataclasses.fields(cfg)}
+        unknown = sorted(set(fields) - names)
+        if unknown:
+            raise KeyError(f"model {name!r}: saved configuration has fields this version lacks: {unknown}")
+        cfg = dataclasses.replace(cfg, **{k: coerce_field(getattr(cfg, k), v) for k, v in fields.items()})
+    return entry.cls(cfg)
 
 
 def register_model(

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
-from mcdenoise.models.base import Denoiser, register_model
+from mcdenoise.models.base import Denoiser, build_from_fields, register_model
 from mcdenoise.models.blocks import UNet
 
 __all__ = ["CombineConfig", "Combine", "combine_features"]
@@ -184,10 +184,8 @@ class Combine(Denoiser):
         self.names = PF_CANDIDATES if config.prefiltered else CANDIDATES
         self.kernel_model: Denoiser | None = None
         if config.kernel_candidate:
-            from mcdenoise.models.weights import model_from_config  # the registry sits above the models
-
             name, _, preset = config.kernel_candidate.partition(":")
-            sub = model_from_config(name, preset or "small", config.kernel_candidate_config)
+            sub = build_from_fields(name, preset or "small", config.kernel_candidate_config)
             if sub.input_kind != "pixels":
                 raise ValueError(f"kernel_candidate {config.kernel_candidate!r} reads samples; the combiner takes pixel models only")
             self.kernel_model = sub.requires_grad_(False).eval()

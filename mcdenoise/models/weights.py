@@ -17,7 +17,6 @@ device, test metrics). Weights are read with safetensors only, never unpickled.
 
 from __future__ import annotations
 
-import dataclasses
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -27,7 +26,7 @@ import torch
 
 from mcdenoise.errors import McDenoiseError
 from mcdenoise.io.run_folder import CONFIG_FILE, WEIGHTS_FILE, checkpoint_run, intact_checkpoint
-from mcdenoise.models.base import MODELS, Denoiser
+from mcdenoise.models.base import MODELS, Denoiser, build_from_fields
 from mcdenoise.models.builtin import load_builtin_models
 
 __all__ = [
@@ -86,13 +85,6 @@ def shipped_weights(name: str, preset: str = "small") -> ShippedWeights:
     raise WeightsError(f"no shipped weights for model {name!r} preset {preset!r}; shipped: {have}")
 
 
-def _coerce(default: Any, value: Any) -> Any:
-    """JSON turned tuples into lists; give fields back the container type of the preset's value."""
-    if isinstance(default, tuple) and isinstance(value, list):
-        return tuple(_coerce(d, v) for d, v in zip(default, value)) if len(default) == len(value) else tuple(value)
-    return value
-
-
 def model_from_config(name: str, preset: str, model_config: dict[str, Any] | None = None) -> Denoiser:
     """Build ``name`` from ``preset``, then apply the saved ``model_config`` fields (a run's or a card's)."""
     load_builtin_models()
@@ -101,14 +93,10 @@ def model_from_config(name: str, preset: str, model_config: dict[str, Any] | Non
     entry = MODELS[name]
     if preset not in entry.presets:
         raise WeightsError(f"model {name!r} has no preset {preset!r}; presets: {', '.join(sorted(entry.presets))}")
-    cfg = entry.config(preset)
-    if model_config:
-        names = {f.name for f in dataclasses.fields(cfg)}
-        unknown = sorted(set(model_config) - names)
-        if unknown:
-            raise WeightsError(f"model {name!r}: saved configuration has fields this version lacks: {unknown}")
-        cfg = dataclasses.replace(cfg, **{k: _coerce(getattr(cfg, k), v) for k, v in model_config.items()})
-    return entry.cls(cfg)
+    try:
+        return build_from_fields(name, preset, model_config)
+    except KeyError as e:
+        raise WeightsError(e.args[0]) from None
 
 
 def load_weights(model: torch.nn.Module, path: str | Path) -> None:
