@@ -13,7 +13,9 @@ so a constant image stays constant and no output exceeds the largest candidate v
 ``k x k`` neighbourhood: the combiner cannot invent radiance (Back et al. 2020 combine a noisy
 and a denoised image with a kernel network; Firmino et al. 2022 blend noisy and OIDN per pixel;
 Zheng et al. 2021 weight several denoisers per pixel). It starts as the identity on OIDN (centre
-tap bias), so fine-tuning moves away from OIDN only where the data says so.
+tap bias), so fine-tuning moves away from OIDN only where the data says so. With
+``kernel_candidate`` a frozen pixel model of ours (kpcn-pixel) is one more candidate: its small
+kernels do not spread an emitter into the halos OIDN makes (presets ``ens_kpcn`` and ``kpcn``).
 """
 
 from __future__ import annotations
@@ -97,8 +99,8 @@ class CombineConfig:
     held-out images (detail_ref 1-2 val, 8 spp) OIDN 2.5.1 spreads small bright emitters into
     halos over dark surroundings (relMSE 44, 377, 2.05 where the noisy input has 21.6, 9.1, 3.1),
     while kpcn-pixel's 9x9 kernels cannot carry an emitter further than 4 pixels (3.95, 0.64,
-    0.079); the per-pixel oracle over OIDN and kpcn-pixel is 0.61x OIDN's relMSE there, and 0.49x
-    with the noisy mean (docs/models/combine.md)."""
+    0.079); the per-pixel oracle over OIDN and kpcn-pixel is 0.61-0.63x OIDN's relMSE on 45
+    held-out images, and 0.48-0.50x with the noisy mean (docs/models/combine.md)."""
     kernel_clamp: float = 0.0
     """The kernel candidate is clamped to this factor times ``noisy_clamp``'s reference at the same
     pixel (no neighbourhood; 0 = off). Why: a kernel model's failure is the noisy input's, an
@@ -132,7 +134,8 @@ def combine_features(batch: dict[str, torch.Tensor], use_variance: bool = False,
                      kernel: torch.Tensor | None = None) -> torch.Tensor:
     """``(B, N_FEATURES [+ N_VARIANCE_FEATURES] [+ N_PF_FEATURES] [+ N_PF_FEATURES], H, W)`` inputs
     of the weight network, exposure-normalised where it matters (log colour; ratios, not
-    differences). ``kernel``: the kernel-model candidate ``(B, 3, H, W)``, described like ``oidn_pf``."""
+    differences). ``kernel``: the kernel-model candidate ``(B, 3, H, W)``, described like ``oidn_pf``
+    (its log colour and relative deviation from OIDN: the last N_PF_FEATURES channels)."""
     oidn = batch["oidn"].clamp_min(0)
     noisy = batch["radiance"].clamp_min(0)
     lo, ln = _lum(oidn), _lum(noisy)
@@ -295,7 +298,7 @@ _PAPER = ("Back et al. 2020 (deep combiner), Zheng et al. 2021 (ensemble denoisi
         "kpcn": lambda: CombineConfig(noisy_clamp=1.0, kernel_candidate="kpcn:pixel"),
     },
     paper=_PAPER,
-    description="U-Net -> per-pixel softmax kernels over OIDN 2.5.1's output and the noisy mean",
+    description="U-Net -> per-pixel softmax kernels over OIDN 2.5.1's output and the noisy mean (ens_kpcn/kpcn: and a frozen kpcn-pixel)",
 )
 class CombineModel(Combine):
     pass
