@@ -59,9 +59,9 @@ def main() -> None:
         if k.startswith("kernel_model."):
             state[k] = kten[k.removeprefix("kernel_model.")].clone()
             continue
-        old = cten[k]
         if a.fresh:
             continue
+        old = cten[k]
         if old.shape == t.shape:
             state[k] = old.clone()
             continue

@@ -28,10 +28,9 @@ def _needs_prefiltered_oidn(method: str) -> bool:
     name, _, preset = method.removesuffix(" api").partition(":")
     if name != "combine":
         return False
-    from mcdenoise.models.registry import MODELS, _load_all
+    from mcdenoise.models.registry import list_models
 
-    _load_all()
-    entry = MODELS.get(name)
+    entry = next((e for e in list_models() if e.name == name), None)
     return bool(entry and preset in entry.presets and getattr(entry.config(preset), "prefiltered", False))
 
 
