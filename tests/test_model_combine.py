@@ -382,3 +382,92 @@ def test_kernel_clamp_bounds_a_spread_firefly_but_not_a_darker_candidate() -> No
     assert torch.equal(cands[3][..., 0, 0], kernel[..., 0, 0])  # darker than OIDN: untouched
     off = model_from_config("combine", "ens_kpcn", {}).double()
     assert float(off.candidates(batch, kernel)[3][..., 5, 5].max()) == 40.0
+
+
+def _with_own_kernel(seed: int = 0, **fields: object) -> torch.nn.Module:
+    from mcdenoise.models.weights import model_from_config
+
+    torch.manual_seed(seed)
+    model = model_from_config("combine", "own", dict(fields))
+    with torch.no_grad():
+        for p in model.net.parameters():
+            p.normal_(0, 0.3)
+    return model.eval()
+
+
+def test_the_own_kernel_combiner_stays_within_its_candidates() -> None:
+    """Catches the own kernel's candidate outside the partition of unity (its weight channel and
+    its K*K logits out of step in the network's output, or the candidate list in another order
+    than the weights): the output would leave the range of OIDN, the clamped noisy mean and the
+    clamped own candidate."""
+    model = _with_own_kernel()
+    batch = synthetic_batch(model, height=21, width=27, generator=torch.Generator().manual_seed(5))
+    batch["radiance"] = batch["radiance"] * torch.exp(torch.randn_like(batch["radiance"]) * 3)
+    with torch.no_grad():
+        weights, own = model.predict(batch)
+        cands = torch.stack(model.candidates(batch, None, own))
+        out = model(batch)
+    assert cands.shape[0] == 3 and weights.shape[1] == 3
+    torch.testing.assert_close(weights.sum(1), torch.ones_like(weights[:, 0]))
+    assert float(weights[:, 2].mean()) > 1e-3  # the randomised network does use the own candidate
+    assert (out <= cands.amax(0) * (1 + 1e-5) + 1e-6).all() and (out >= cands.amin(0) * (1 - 1e-5) - 1e-6).all()
+    assert (cands[2] <= batch["oidn"].clamp_min(0) + 1e-4 + 1e-6).all()  # kernel_clamp 1: never above OIDN
+
+
+def test_the_own_kernel_keeps_a_constant_image_and_filters_in_the_albedo_domain() -> None:
+    """Catches a kernel that is not normalised (a constant irradiance would change), zero padding at
+    the border (a dark frame), and a remodulation with the wrong albedo (a texture of constant
+    irradiance would be blurred: the candidate must give radiance = albedo * irradiance back)."""
+    model = _with_own_kernel(1, kernel_clamp=0.0)
+    batch = synthetic_batch(model, height=17, width=19, generator=torch.Generator().manual_seed(2))
+    albedo = torch.rand_like(batch["albedo"]) * 0.9 + 0.05  # a texture
+    batch["albedo"] = albedo
+    batch["radiance"] = 0.3 * (albedo + 0.00316)  # lit evenly: constant irradiance 0.3
+    with torch.no_grad():
+        _, own = model.predict(batch)
+    torch.testing.assert_close(own, batch["radiance"], rtol=1e-5, atol=1e-6)
+
+
+def test_the_own_kernel_banded_inference_matches_the_training_path() -> None:
+    """Catches the inference path (row bands, logits in any layout) disagreeing with the
+    differentiable one the network was trained through: masking, softmax or tap order."""
+    model = _with_own_kernel(2, kernel_clamp=0.0).double()
+    batch = {k: v.double() for k, v in synthetic_batch(model, height=19, width=23, generator=torch.Generator().manual_seed(4)).items()}
+    with torch.no_grad():
+        _, own_banded = model.predict(batch)
+    with torch.enable_grad():
+        _, own_grad = model.predict(batch)
+    torch.testing.assert_close(own_banded, own_grad.detach(), rtol=1e-10, atol=1e-12)
+
+
+def test_every_parameter_of_the_own_kernel_combiner_gets_a_gradient_from_each_loss() -> None:
+    """Catches an own-kernel head cut off from training: no gradient through the image loss (its
+    candidate not among the weighted ones) or through its own loss term (forward_aux not giving it)."""
+    model = _with_own_kernel(3).train()
+    batch = synthetic_batch(model, height=16, width=16, generator=torch.Generator().manual_seed(2))
+    out = model.forward_aux(batch)
+    assert set(out) == {"image", "own"} and model.aux_loss_weights()["own"] > 0
+    out["own"].square().mean().backward()
+    final = model.net.final.weight.grad
+    assert final is not None and bool(final[3:].abs().sum() > 0)  # the K*K logits get the own loss
+    model.zero_grad()
+    model(batch).square().mean().backward()
+    assert all(p.grad is not None and bool(p.grad.abs().sum() > 0) for p in model.net.parameters())
+
+
+def test_trainer_adds_the_own_kernel_loss() -> None:
+    """Catches the trainer ignoring forward_aux (the own candidate would learn only where the
+    combination already uses it) or weighting it other than the model says."""
+    from mcdenoise.train.config import TrainConfig
+    from mcdenoise.train.trainer import Trainer
+
+    model = _with_own_kernel(4).train()
+    batch = synthetic_batch(model, height=16, width=16, generator=torch.Generator().manual_seed(6))
+    batch["target"] = torch.rand_like(batch["radiance"])
+    cfg = TrainConfig(model="combine", preset="own", data="unused", loss="l1").resolved(model.input_kind)
+    trainer = Trainer(model, cfg, torch.device("cpu"))
+    with torch.no_grad():
+        total = float(trainer.compute_loss(batch, 10**6))
+        aux = model.forward_aux(batch)
+    l1 = lambda a: float((a - batch["target"]).abs().mean())  # noqa: E731
+    assert total == pytest.approx(l1(aux["image"]) + 0.5 * l1(aux["own"]), rel=1e-5)

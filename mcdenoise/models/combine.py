@@ -27,6 +27,8 @@ import torch.nn.functional as F
 
 from mcdenoise.models.base import Denoiser, build_from_fields, register_model
 from mcdenoise.models.blocks import UNet
+from mcdenoise.models.emitters import as_reflectance
+from mcdenoise.models.kpcn import apply_kernels
 
 __all__ = ["CombineConfig", "Combine", "combine_features"]
 
@@ -109,6 +111,18 @@ class CombineConfig:
     while what it adds is darker than OIDN's halos, which no upper clamp touches. The 3x3
     neighbourhood the noisy clamp uses left relMSE 97 on the second image (9.8x OIDN's). The
     weight network still reads the unclamped output."""
+    own_kernel: int = 0
+    """Side K of a per-pixel kernel the weight network itself predicts (K*K more output
+    channels) and applies to the noisy mean demodulated by the albedo, as KPCN filters diffuse
+    irradiance; the result, remodulated, is one more candidate (after the noisy one; 0 = none).
+    Why: a kernel model's candidate is what beats OIDN where it halos a small emitter
+    (``kernel_candidate``), but kpcn-pixel costs 2x OIDN high at 1080p, and issue 20 leaves the
+    combiner 0.5x; predicted by the same U-Net it costs one K*K softmax-gather. ``kernel_clamp``
+    clamps it like the kernel model's candidate."""
+    own_kernel_loss: float = 0.0
+    """Weight of the own kernel candidate's loss against the target, added in training to the
+    output's (the candidate then learns to denoise on its own, not only where the combination
+    uses it; 0 = no such term)."""
     kernel_candidate_config: dict | None = None
     """The candidate model's configuration fields over its preset (a shipped card's
     ``model_config``), so the combiner's file alone rebuilds it."""
@@ -123,6 +137,10 @@ PF_CANDIDATES = ("oidn", "oidn_pf", "radiance")
 N_FEATURES = 3 + 3 + 3 + 3 + 1
 N_VARIANCE_FEATURES = 2
 N_PF_FEATURES = 3 + 1
+#: With ``own_kernel``: the log of the demodulated noisy mean (what the kernel filters).
+N_OWN_FEATURES = 3
+#: Added to the albedo before demodulating (KPCN's, Bako et al. 2017 Sec. 4.3).
+ALBEDO_EPS = 0.00316
 
 
 def _lum(x: torch.Tensor) -> torch.Tensor:
@@ -130,8 +148,16 @@ def _lum(x: torch.Tensor) -> torch.Tensor:
     return 0.2126 * x[:, 0:1] + 0.7152 * x[:, 1:2] + 0.0722 * x[:, 2:3]
 
 
+def demodulate(batch: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(noisy / (albedo + eps), albedo + eps)``, each (B, 3, H, W): the colour the own kernel
+    filters and the factor that brings it back. Emitter pixels read albedo 1 (their albedo is
+    their radiance in Cycles' passes)."""
+    a = as_reflectance(batch["albedo"]).clamp_min(0) + ALBEDO_EPS
+    return batch["radiance"].clamp_min(0) / a, a
+
+
 def combine_features(batch: dict[str, torch.Tensor], use_variance: bool = False, prefiltered: bool = False,
-                     kernel: torch.Tensor | None = None) -> torch.Tensor:
+                     kernel: torch.Tensor | None = None, own: bool = False) -> torch.Tensor:
     """``(B, N_FEATURES [+ N_VARIANCE_FEATURES] [+ N_PF_FEATURES] [+ N_PF_FEATURES], H, W)`` inputs
     of the weight network, exposure-normalised where it matters (log colour; ratios, not
     differences). ``kernel``: the kernel-model candidate ``(B, 3, H, W)``, described like ``oidn_pf``
@@ -153,7 +179,20 @@ def combine_features(batch: dict[str, torch.Tensor], use_variance: bool = False,
     if kernel is not None:
         kc = kernel.clamp_min(0)
         feats += [torch.log1p(kc), torch.log1p((_lum(kc) - lo).abs() / (lo + EPS))]
+    if own:
+        feats.append(torch.log1p(demodulate(batch)[0]))
     return torch.cat(feats, dim=1)
+
+
+def max3x3(x: torch.Tensor) -> torch.Tensor:
+    """(B, C, H, W) -> same: the maximum over each pixel's 3x3 neighbourhood, the edge repeated
+    (= ``max_pool2d`` of the replicate-padded image). Separable, in shifted maxima: CPU
+    ``max_pool2d`` also computes indices, 3x slower at 1080p."""
+    p = F.pad(x, (0, 0, 1, 1), mode="replicate")
+    rows = torch.maximum(torch.maximum(p[..., :-2, :], p[..., 1:-1, :]), p[..., 2:, :])
+    p = F.pad(rows, (1, 1, 0, 0), mode="replicate")
+    out = torch.maximum(torch.maximum(p[..., :-2], p[..., 1:-1]), p[..., 2:])
+    return out
 
 
 def apply_weights(candidates: list[torch.Tensor], weights: torch.Tensor, k: int) -> torch.Tensor:
@@ -164,6 +203,11 @@ def apply_weights(candidates: list[torch.Tensor], weights: torch.Tensor, k: int)
     """
     b, _, h, w = candidates[0].shape
     r = k // 2
+    if k == 1:  # one tap per candidate: a weighted sum, no unfold copies
+        out = candidates[0] * weights[:, 0:1]
+        for c in range(1, len(candidates)):
+            out.addcmul_(candidates[c], weights[:, c : c + 1])
+        return out
     out = torch.zeros_like(candidates[0])
     for c, img in enumerate(candidates):
         padded = F.pad(img, (r, r, r, r), mode="replicate") if r else img
@@ -176,6 +220,11 @@ class Combine(Denoiser):
     """Per-pixel softmax kernels over OIDN's output and the noisy mean (see the module docstring)."""
 
     input_kind = "pixels"
+    #: The weight network's output may come back from a bfloat16 channels_last trunk as it is: the
+    #: weights are a few channels (converted here), the own kernel's K*K logits are converted a row
+    #: band at a time by :func:`~mcdenoise.models.kpcn.apply_kernels` (a whole-image conversion of
+    #: 49 channels cost more than the network at 1080p).
+    trunk_outputs_any_layout = True
 
     def __init__(self, config: CombineConfig) -> None:
         super().__init__(config)
@@ -193,8 +242,12 @@ class Combine(Denoiser):
                 raise ValueError(f"kernel_candidate {config.kernel_candidate!r} reads samples; the combiner takes pixel models only")
             self.kernel_model = sub.requires_grad_(False).eval()
             n_in += N_PF_FEATURES
-        n_cand = len(self.names) + (self.kernel_model is not None)
-        self.net = UNet(n_in, n_cand * k2, [(w, w)] * config.levels, (w, w), [(w, w)] * config.levels)
+        ko = config.own_kernel
+        if ko < 0 or (ko and ko % 2 == 0) or config.own_kernel_loss < 0:
+            raise ValueError(f"own_kernel must be 0 or odd and own_kernel_loss >= 0, got {ko}, {config.own_kernel_loss}")
+        n_in += N_OWN_FEATURES if ko else 0
+        self.n_weights = (len(self.names) + (ko > 0) + (self.kernel_model is not None)) * k2
+        self.net = UNet(n_in, self.n_weights + ko * ko, [(w, w)] * config.levels, (w, w), [(w, w)] * config.levels)
         if config.noisy_clamp_ref not in ("oidn", "min"):
             raise ValueError(f"noisy_clamp_ref must be 'oidn' or 'min', got {config.noisy_clamp_ref!r}")
         if not 0 < config.shrink <= 1:
@@ -240,11 +293,27 @@ class Combine(Denoiser):
         return self.kernel_model(batch).to(batch["oidn"].dtype)
 
     def features(self, batch: dict[str, torch.Tensor], kernel: torch.Tensor | None = None) -> torch.Tensor:
-        return combine_features(batch, self.config.use_variance, self.config.prefiltered, kernel)
+        return combine_features(batch, self.config.use_variance, self.config.prefiltered, kernel, self.config.own_kernel > 0)
+
+    def predict(self, batch: dict[str, torch.Tensor], kernel: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """The weight network's two heads: (B, n_candidates * k * k, H, W) softmax weights
+        (:meth:`weights`) and the own kernel's candidate (B, 3, H, W), None without ``own_kernel``."""
+        raw = self.net(self.features(batch, kernel))
+        own = None
+        if self.config.own_kernel:
+            colour, factor = demodulate(batch)
+            logits = raw[:, self.n_weights :]
+            # Training: the logits in the colour's dtype (the differentiable gather wants one dtype);
+            # inference converts them a band at a time, whatever the trunk's layout.
+            own = apply_kernels(colour, logits if not torch.is_grad_enabled() else logits.to(colour.dtype),
+                                self.config.own_kernel) * factor
+        return self._normalise(raw[:, : self.n_weights].to(batch["oidn"].dtype).contiguous()), own
 
     def weights(self, batch: dict[str, torch.Tensor], kernel: torch.Tensor | None = None) -> torch.Tensor:
         """(B, n_candidates * k * k, H, W) softmax weights (``kernel``: see :meth:`kernel_output`)."""
-        raw = self.net(self.features(batch, kernel))
+        return self.predict(batch, kernel)[0]
+
+    def _normalise(self, raw: torch.Tensor) -> torch.Tensor:
         w = torch.softmax(raw / (1 + raw.abs() / LOGIT_BOUND), dim=1)
         a = self.config.shrink
         if a < 1:  # OIDN's centre tap is channel k*k // 2 (OIDN is the first candidate)
@@ -252,33 +321,50 @@ class Combine(Denoiser):
             w = a * w + torch.nn.functional.one_hot(torch.tensor(centre), w.shape[1]).to(w).view(1, -1, 1, 1) * (1 - a)
         return w
 
-    def candidates(self, batch: dict[str, torch.Tensor], kernel: torch.Tensor | None = None) -> list[torch.Tensor]:
+    def candidates(self, batch: dict[str, torch.Tensor], kernel: torch.Tensor | None = None,
+                   own: torch.Tensor | None = None) -> list[torch.Tensor]:
         """The candidate images, in ``self.names`` order (the noisy one clamped, see the config),
-        then ``kernel`` when given."""
+        then ``own`` (the own kernel's, :meth:`predict`) and ``kernel`` when given."""
         oidn, noisy = batch["oidn"], batch["radiance"]
-        kc = self.config.kernel_clamp if kernel is not None else 0.0
+        kc = self.config.kernel_clamp if kernel is not None or own is not None else 0.0
         if self.config.noisy_clamp > 0 or kc > 0:
             ref = oidn
             if self.config.noisy_clamp_ref == "min" and self.config.prefiltered:
                 ref = torch.minimum(oidn, batch["oidn_pf"])
             if self.config.noisy_clamp > 0:
-                bright = F.max_pool2d(F.pad(ref.clamp_min(0), (1, 1, 1, 1), mode="replicate"), 3, stride=1)
+                bright = max3x3(ref.clamp_min(0))
                 noisy = torch.minimum(noisy, self.config.noisy_clamp * bright + EPS)
-            if kc > 0:  # per pixel, no neighbourhood: the kernel candidate may only be darker
-                kernel = torch.minimum(kernel, kc * ref.clamp_min(0) + EPS)
+            if kc > 0:  # per pixel, no neighbourhood: a kernel candidate may only be darker
+                cap = kc * ref.clamp_min(0) + EPS
+                kernel = torch.minimum(kernel, cap) if kernel is not None else None
+                own = torch.minimum(own, cap) if own is not None else None
         out = [oidn, batch["oidn_pf"], noisy] if self.config.prefiltered else [oidn, noisy]
-        return out + ([kernel] if kernel is not None else [])
+        return out + [c for c in (own, kernel) if c is not None]
+
+    def forward_aux(self, batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        """Training outputs: ``image`` (the forward pass) and, with ``own_kernel_loss``,
+        ``own`` (the own kernel's unclamped candidate) for its own loss term."""
+        out, own = self._forward(batch)
+        return {"image": out, **({"own": own} if own is not None and self.config.own_kernel_loss > 0 else {})}
+
+    def aux_loss_weights(self) -> dict[str, float]:
+        """Weight of each :meth:`forward_aux` output's loss beside the image's."""
+        return {"own": self.config.own_kernel_loss}
 
     def forward(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
+        return self._forward(batch)[0]
+
+    def _forward(self, batch: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor | None]:
         kernel = self.kernel_output(batch)
-        out = apply_weights(self.candidates(batch, kernel), self.weights(batch, kernel), self.config.kernel)
+        weights, own = self.predict(batch, kernel)
+        out = apply_weights(self.candidates(batch, kernel, own), weights, self.config.kernel)
         t = self.config.miss_halo
         if t > 0:
             noisy = batch["radiance"]
             miss = (batch["albedo"].abs().sum(1, keepdim=True) == 0) & (batch["normal"].abs().sum(1, keepdim=True) == 0)
             halo = miss & (_lum(out) > t * _lum(noisy.clamp_min(0)) + EPS)
             out = torch.where(halo, noisy, out)
-        return out
+        return out, own
 
 
 _PAPER = ("Back et al. 2020 (deep combiner), Zheng et al. 2021 (ensemble denoising), Firmino et al. 2022 "
@@ -296,6 +382,7 @@ _PAPER = ("Back et al. 2020 (deep combiner), Zheng et al. 2021 (ensemble denoisi
         "ens": lambda: CombineConfig(prefiltered=True),
         "ens_kpcn": lambda: CombineConfig(prefiltered=True, noisy_clamp=1.0, noisy_clamp_ref="min", kernel_candidate="kpcn:pixel"),
         "kpcn": lambda: CombineConfig(noisy_clamp=1.0, kernel_candidate="kpcn:pixel"),
+        "own": lambda: CombineConfig(width=24, noisy_clamp=1.0, own_kernel=7, own_kernel_loss=0.5, kernel_clamp=1.0),
     },
     paper=_PAPER,
     description="U-Net -> per-pixel softmax kernels over OIDN 2.5.1's output and the noisy mean (ens_kpcn/kpcn: and a frozen kpcn-pixel)",

@@ -45,7 +45,7 @@ from mcdenoise.models.kpcn_features import FEATURES_PER_BRANCH, kpcn_features, w
 from mcdenoise.ops.gather import gather, gather_rows
 from mcdenoise.ops.kernels import softmax_kernel
 
-__all__ = ["KPCNConfig", "KPCN", "kpcn_features", "window_variance", "FEATURES_PER_BRANCH"]
+__all__ = ["KPCNConfig", "KPCN", "apply_kernels", "kpcn_features", "window_variance", "FEATURES_PER_BRANCH"]
 
 
 @dataclass
@@ -158,6 +158,19 @@ def _apply_kernels_banded(color: torch.Tensor, logits: torch.Tensor, k: int, ban
     return out
 
 
+def apply_kernels(color: torch.Tensor, logits: torch.Tensor, k: int) -> torch.Tensor:
+    """(B, 3, H, W) colour filtered by per-pixel K x K softmax kernels from (B, K*K, H, W) logits.
+
+    Taps outside the image get no weight, so the softmax renormalises over the image instead of
+    blending in zero padding at the borders. With gradients off it runs
+    :func:`_apply_kernels_banded` (same values, a row band at a time); with them, the
+    differentiable whole-image path.
+    """
+    if not torch.is_grad_enabled():
+        return _apply_kernels_banded(color, logits, k)
+    return gather(color, softmax_kernel(_mask_out_of_image_taps(logits, k)))
+
+
 class _Branch(nn.Module):
     """L convolutions, ReLU after all but the last (Sec. 4.1)."""
 
@@ -238,13 +251,7 @@ class KPCN(Denoiser):
             if self.config.direct:
                 out[name] = z.to(x.dtype, memory_format=torch.contiguous_format)
                 continue
-            # Taps outside the image get no weight, so the softmax renormalises over the image
-            # instead of blending in zero padding at the borders.
-            if not torch.is_grad_enabled():
-                out[name] = _apply_kernels_banded(x[:, :3], z, self.config.kernel_size)
-                continue
-            z = _mask_out_of_image_taps(z, self.config.kernel_size)
-            out[name] = gather(x[:, :3], softmax_kernel(z))
+            out[name] = apply_kernels(x[:, :3], z, self.config.kernel_size)
         return out
 
     def branch_targets(self, reference: dict[str, torch.Tensor], batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:

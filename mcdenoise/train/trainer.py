@@ -37,6 +37,8 @@ class _Objective(nn.Module):
     def forward(self, batch: dict[str, torch.Tensor], branches: bool) -> dict[str, torch.Tensor]:
         if branches:
             return self.model.forward_branches(batch)  # type: ignore[operator]
+        if hasattr(self.model, "forward_aux"):  # the image and outputs with loss terms of their own
+            return self.model.forward_aux(batch)  # type: ignore[operator]
         return {"image": self.model(batch)}
 
 
@@ -89,7 +91,11 @@ class Trainer:
         with ctx:
             out = self.objective(batch, branches)
         if not branches:
-            return self.loss(out["image"].float(), batch["target"])
+            loss = self.loss(out["image"].float(), batch["target"])
+            if len(out) > 1:  # forward_aux's extra outputs, each weighted as the model says
+                weights = self.model.aux_loss_weights()  # type: ignore[operator]
+                loss = loss + sum(weights[n] * self.loss(out[n].float(), batch["target"]) for n in sorted(out) if n != "image")
+            return loss
         ref = {"radiance": batch["target"]}
         ref.update({k.split(":", 1)[1]: v for k, v in batch.items() if k.startswith("target:")})
         targets = self.model.branch_targets(ref, batch)  # type: ignore[operator]
