@@ -108,6 +108,8 @@ def test_pointwise_conv_equals_conv2d_float64(bias: bool) -> None:
     torch.testing.assert_close(conv(xl), torch.nn.functional.conv2d(xl, conv.weight, conv.bias), rtol=1e-12, atol=1e-12)
     xc = x.contiguous(memory_format=torch.channels_last)
     torch.testing.assert_close(conv(xc), torch.nn.functional.conv2d(x, conv.weight, conv.bias), rtol=1e-12, atol=1e-12)
+    # An NHWC input (a bfloat16 trunk's) gives NHWC back: no copy to NCHW on the way (campaign 11).
+    assert conv(xc).is_contiguous(memory_format=torch.channels_last)
 
 
 def test_pointwise_conv_gradcheck_and_state_dict() -> None:

@@ -158,7 +158,26 @@ def demodulate(batch: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tens
 
 def combine_features(batch: dict[str, torch.Tensor], use_variance: bool = False, prefiltered: bool = False,
                      kernel: torch.Tensor | None = None, own: bool = False) -> torch.Tensor:
-    """``(B, N_FEATURES [+ N_VARIANCE_FEATURES] [+ N_PF_FEATURES] [+ N_PF_FEATURES], H, W)`` inputs
+    """The feature pieces of :func:`feature_list`, concatenated."""
+    return torch.cat(feature_list(batch, use_variance, prefiltered, kernel, own), dim=1)
+
+
+def pack_features(pieces: list[torch.Tensor], dtype: torch.dtype) -> torch.Tensor:
+    """``torch.cat(pieces, 1)`` written straight into a ``dtype`` channels_last tensor: what a
+    reduced-precision trunk takes, without the float32 concatenation and its layout conversion."""
+    b, _, h, w = pieces[0].shape
+    out = torch.empty((b, sum(p.shape[1] for p in pieces), h, w), dtype=dtype, device=pieces[0].device,
+                      memory_format=torch.channels_last)
+    c = 0
+    for p in pieces:
+        out[:, c : c + p.shape[1]].copy_(p)
+        c += p.shape[1]
+    return out
+
+
+def feature_list(batch: dict[str, torch.Tensor], use_variance: bool = False, prefiltered: bool = False,
+                 kernel: torch.Tensor | None = None, own: bool = False) -> list[torch.Tensor]:
+    """Pieces, in channel order, of the ``(B, N_FEATURES [+ N_VARIANCE_FEATURES] [+ N_PF_FEATURES] [+ N_PF_FEATURES], H, W)`` inputs
     of the weight network, exposure-normalised where it matters (log colour; ratios, not
     differences). ``kernel``: the kernel-model candidate ``(B, 3, H, W)``, described like ``oidn_pf``
     (its log colour and relative deviation from OIDN: the last N_PF_FEATURES channels)."""
@@ -181,7 +200,7 @@ def combine_features(batch: dict[str, torch.Tensor], use_variance: bool = False,
         feats += [torch.log1p(kc), torch.log1p((_lum(kc) - lo).abs() / (lo + EPS))]
     if own:
         feats.append(torch.log1p(demodulate(batch)[0]))
-    return torch.cat(feats, dim=1)
+    return feats
 
 
 def max3x3(x: torch.Tensor) -> torch.Tensor:
@@ -298,7 +317,13 @@ class Combine(Denoiser):
     def predict(self, batch: dict[str, torch.Tensor], kernel: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor | None]:
         """The weight network's two heads: (B, n_candidates * k * k, H, W) softmax weights
         (:meth:`weights`) and the own kernel's candidate (B, 3, H, W), None without ``own_kernel``."""
-        raw = self.net(self.features(batch, kernel))
+        trunk_dtype = getattr(self.net, "dtype", None)  # a ReducedPrecision wrapper's (inference)
+        if trunk_dtype is not None and not torch.is_grad_enabled():
+            x = pack_features(feature_list(batch, self.config.use_variance, self.config.prefiltered, kernel,
+                                           self.config.own_kernel > 0), trunk_dtype)
+        else:
+            x = self.features(batch, kernel)
+        raw = self.net(x)
         own = None
         if self.config.own_kernel:
             colour, factor = demodulate(batch)
