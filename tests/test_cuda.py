@@ -17,8 +17,9 @@ from train_tiny_data import make_tiny_dataset
 
 pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
 
-#: Every registered model at its small preset, plus kpcn's pixel preset (window variances in float64).
-CASES = [(e.name, "small") for e in list_models()] + [("kpcn", "pixel")]
+#: Every registered model at its small preset, plus kpcn's pixel preset (window variances in float64)
+#: and the combiner with its own kernel (a per-pixel gather inside the combiner).
+CASES = [(e.name, "small") for e in list_models()] + [("kpcn", "pixel"), ("combine", "own")]
 
 
 @pytest.mark.parametrize("name,preset", CASES, ids=[f"{n}-{p}" for n, p in CASES])
