@@ -153,8 +153,8 @@ def _apply_kernels_banded(color: torch.Tensor, logits: torch.Tensor, k: int, ban
         zb.copy_(logits[:, :, r0:r1])
         _mask_border_taps_(zb, k, r0, h)
         zb.sub_(zb.amax(dim=1, keepdim=True)).exp_()  # the centre tap is in the image: max finite
-        zb.div_(zb.sum(dim=1, keepdim=True))
-        out[:, :, r0:r1] = gather_rows(color, zb, r0)
+        # Normalise the 3-channel result, not the K*K weights: the same sum, K*K/3 fewer divisions.
+        out[:, :, r0:r1] = gather_rows(color, zb, r0).div_(zb.sum(dim=1, keepdim=True))
     return out
 
 
