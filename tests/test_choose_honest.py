@@ -86,3 +86,57 @@ def test_the_shipped_combiner_is_picked_by_its_own_card_for_colour_albedo_normal
     assert info["name"] == "combine" and info["preset"] == "ens", info["why"]
     model, info = choose_model(_inputs())
     assert isinstance(model, OIDNMethod)
+
+
+def test_a_card_not_for_blender_keeps_its_model_out_of_the_pick_for_blender_files(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Catches a model measured worse than OIDN on Cycles renders (combine-own: 42 of 48 Blender
+    renders within 5% of OIDN, against 46 for combine-ens) picked for a Blender file because its
+    third-party card ranks first: with ``not_for: {"blender": ...}`` it is skipped for inputs whose
+    source is Blender, and still picked for the same channels from elsewhere."""
+    from mcdenoise.models import weights as W
+
+    real = W.shipped()
+
+    def fake() -> list:
+        out = []
+        for sw in real:
+            card = json.loads(json.dumps(sw.card))
+            if sw.name == "combine" and sw.preset in ("own", "ens"):
+                r = 0.03 if sw.preset == "own" else 0.05  # own ranks first
+                card["validation"] = {"spp": {"8": {"model": {"relmse": r}, "oidn-high": {"relmse": 0.06}}}}
+                if sw.preset == "own":
+                    card["not_for"] = {"blender": "measured worse than OIDN on Cycles renders"}
+            else:
+                card.pop("validation", None)
+            out.append(type(sw)(**{**sw.__dict__, "card": card}))
+        return out
+
+    monkeypatch.setattr(W, "shipped", fake)
+    inputs = _inputs(albedo=True, normal=True)
+    _, info = choose_model(inputs)
+    assert (info["name"], info["preset"]) == ("combine", "own"), info["why"]
+    inputs.source = "blender"
+    _, info = choose_model(inputs)
+    assert (info["name"], info["preset"]) == ("combine", "ens"), info["why"]
+
+
+def test_the_shipped_own_combiner_is_not_for_blender_files() -> None:
+    """Catches a re-ship of combine-own that drops its card's ``not_for`` (ship writes a new card):
+    the Blender renders of docs/DENOISE.md measured it worse than OIDN on the room scene."""
+    from mcdenoise.models.weights import shipped
+
+    card = next(sw.card for sw in shipped() if sw.name == "combine" and sw.preset == "own")
+    assert "blender" in card.get("not_for", {})
+
+
+def test_a_cycles_file_says_its_source(tmp_path) -> None:
+    """Catches from_exr losing the renderer (the pick's ``not_for`` rule would never bind)."""
+    from mcdenoise.infer.sources import from_exr
+    from mcdenoise.io.exr import write_exr_raw
+
+    c = np.random.default_rng(2).random((3, 8, 8)).astype(np.float32)
+    path = tmp_path / "render.exr"
+    write_exr_raw(path, {"ViewLayer.Combined.R": c[0], "ViewLayer.Combined.G": c[1], "ViewLayer.Combined.B": c[2],
+                     "ViewLayer.Denoising Albedo.R": c[0], "ViewLayer.Denoising Albedo.G": c[1],
+                     "ViewLayer.Denoising Albedo.B": c[2]})
+    assert from_exr(path).source == "blender"

@@ -79,6 +79,11 @@ def test_shipped_weights_by_name_match_the_run(run: Path, tmp_path: Path, monkey
     assert card["training"]["command"] in doc and "generated:shipped:wskp-small" in doc
     with pytest.raises(W.WeightsError, match="exist"):
         ship(run, out_dir=tmp_path)
+    # A re-ship keeps the card's not_for (the automatic pick's per-source exclusions, measured on
+    # renders the run knows nothing of); a forgotten one would hand Blender users a worse model.
+    c.write_text(json.dumps({**card, "not_for": {"blender": "measured"}}))
+    _, c2 = ship(run, out_dir=tmp_path, force=True)
+    assert json.loads(c2.read_text())["not_for"] == {"blender": "measured"}
 
 
 def test_missing_and_mismatched_weights_are_one_line_errors(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:

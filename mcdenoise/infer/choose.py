@@ -5,7 +5,9 @@ Without a model named (issue 20, "an automatic pick that is honest"): every ship
 Open Image Denoise 2.5.1 ``high`` itself. They are ranked by the *third-party validation* results
 in the model cards (``card["validation"]``: relMSE at :data:`RANK_SPP` spp on
 ``../shared/valscenes``, with OIDN's on the same images), never by the procedural test split. A
-model is picked only when its card shows it better than OIDN there; otherwise OIDN is. Only when
+model is picked only when its card shows it better than OIDN there; otherwise OIDN is. A card's
+``not_for`` (source -> why, e.g. ``{"blender": ...}``) keeps that model out of the pick for inputs
+from that renderer (:attr:`Inputs.source`), where it was measured worse than OIDN. Only when
 OIDN is not installed do the old rules apply: test relMSE, then :data:`FALLBACK_ORDER`.
 """
 
@@ -235,6 +237,8 @@ def choose_model(inputs: Inputs, spec: str | None = None, *, device: torch.devic
         for sw in shipped():
             if sw.name not in MODELS or (preset is not None and sw.preset != preset):
                 continue
+            if inputs.source and inputs.source in (sw.card.get("not_for") or {}):
+                continue  # measured worse than OIDN on that renderer's files (the card says why)
             needs, kind = _arch_inputs(sw.name, sw.preset, json.dumps(sw.card.get("model_config"), sort_keys=True))
             missing = missing_channels(list(needs), kind, inputs)
             if missing:

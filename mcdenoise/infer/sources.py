@@ -137,6 +137,9 @@ class Inputs:
         paths: files the input was read from (the output must not be one of them).
         label: how messages name the input.
         nonfinite: non-finite pixel values replaced so far.
+        source: the renderer whose conventions the input follows when known (``"blender"`` for a
+            Cycles file), else ``""``; the automatic pick skips models whose card says they are
+            not for it (``not_for``, :mod:`mcdenoise.infer.choose`).
     """
 
     height: int
@@ -147,6 +150,7 @@ class Inputs:
     paths: tuple[Path, ...] = ()
     label: str = "input"
     nonfinite: int = 0
+    source: str = ""
     #: Deferred reading of the pixel buffers (image folders: a sample model never needs
     #: noisy.exr, which holds every channel and its variance -- 2.4 GB at 4K for SBMC's).
     loader: Callable[[Inputs], None] | None = None
@@ -237,17 +241,18 @@ def from_exr(path: str | os.PathLike, *, albedo: str | os.PathLike | None = None
     path = Path(path)
     layers = read_exr(path, spp=spp)
     header = read_exr_header(path)
-    if blender.is_cycles([c.name for c in header["channels"]]):
+    cycles = blender.is_cycles([c.name for c in header["channels"]])
+    if cycles:
         layers = blender.apply_conventions(layers, header, path)
     if "radiance" not in layers and "image" in layers and layers["image"].shape[0] in (3, 4):
         layers["radiance"] = layers["image"][:3]
-    if "radiance" not in layers and blender.is_cycles([c.name for c in header["channels"]]):
+    if "radiance" not in layers and cycles:
         raise InputError(f"{path}: a Blender file with neither a 'Noisy Image' nor a 'Combined' pass: enable the "
                          f"Combined pass in View Layer Properties > Passes; layers: {', '.join(sorted(layers))}")
     if "radiance" not in layers:
         raise InputError(f"{path}: no colour (radiance) channels; layers: {', '.join(sorted(layers)) or 'none'}")
     h, w = layers["radiance"].shape[1:]
-    inputs = Inputs(h, w, {}, paths=(path,), label=str(path))
+    inputs = Inputs(h, w, {}, paths=(path,), label=str(path), source="blender" if cycles else "")
     for name, arr in layers.items():
         if base_name(name) in CHANNELS:
             _add_pixels(inputs, name, arr, str(path))

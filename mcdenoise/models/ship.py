@@ -301,6 +301,13 @@ def ship(run_dir: str | Path, *, results_json: str | Path | None = None, out_dir
     if w_path.exists() and not force:
         raise WeightsError(f"{w_path}: shipped weights exist; pass --force to replace them")
     out_dir.mkdir(parents=True, exist_ok=True)
+    if c_path.is_file():  # a re-ship keeps what was measured about the input sources (choose.py's not_for)
+        try:
+            old = json.loads(c_path.read_text())
+        except ValueError:
+            old = {}
+        if old.get("not_for"):
+            card["not_for"] = old["not_for"]
     meta = {"model": info["name"], "preset": info["preset"], "model_config": json.dumps(card["model_config"]),
             "step": str(card["training"]["steps"])}
     with atomic_file(w_path) as tmp:
