@@ -162,19 +162,6 @@ def combine_features(batch: dict[str, torch.Tensor], use_variance: bool = False,
     return torch.cat(feature_list(batch, use_variance, prefiltered, kernel, own), dim=1)
 
 
-def pack_features(pieces: list[torch.Tensor], dtype: torch.dtype) -> torch.Tensor:
-    """``torch.cat(pieces, 1)`` written straight into a ``dtype`` channels_last tensor: what a
-    reduced-precision trunk takes, without the float32 concatenation and its layout conversion."""
-    b, _, h, w = pieces[0].shape
-    out = torch.empty((b, sum(p.shape[1] for p in pieces), h, w), dtype=dtype, device=pieces[0].device,
-                      memory_format=torch.channels_last)
-    c = 0
-    for p in pieces:
-        out[:, c : c + p.shape[1]].copy_(p)
-        c += p.shape[1]
-    return out
-
-
 def feature_list(batch: dict[str, torch.Tensor], use_variance: bool = False, prefiltered: bool = False,
                  kernel: torch.Tensor | None = None, own: bool = False) -> list[torch.Tensor]:
     """Pieces, in channel order, of the ``(B, N_FEATURES [+ N_VARIANCE_FEATURES] [+ N_PF_FEATURES] [+ N_PF_FEATURES], H, W)`` inputs
@@ -317,13 +304,7 @@ class Combine(Denoiser):
     def predict(self, batch: dict[str, torch.Tensor], kernel: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor | None]:
         """The weight network's two heads: (B, n_candidates * k * k, H, W) softmax weights
         (:meth:`weights`) and the own kernel's candidate (B, 3, H, W), None without ``own_kernel``."""
-        trunk_dtype = getattr(self.net, "dtype", None)  # a ReducedPrecision wrapper's (inference)
-        if trunk_dtype is not None and not torch.is_grad_enabled():
-            x = pack_features(feature_list(batch, self.config.use_variance, self.config.prefiltered, kernel,
-                                           self.config.own_kernel > 0), trunk_dtype)
-        else:
-            x = self.features(batch, kernel)
-        raw = self.net(x)
+        raw = self.net(self.features(batch, kernel))
         own = None
         if self.config.own_kernel:
             colour, factor = demodulate(batch)
@@ -407,7 +388,7 @@ _PAPER = ("Back et al. 2020 (deep combiner), Zheng et al. 2021 (ensemble denoisi
         "ens": lambda: CombineConfig(prefiltered=True),
         "ens_kpcn": lambda: CombineConfig(prefiltered=True, noisy_clamp=1.0, noisy_clamp_ref="min", kernel_candidate="kpcn:pixel"),
         "kpcn": lambda: CombineConfig(noisy_clamp=1.0, kernel_candidate="kpcn:pixel"),
-        "own": lambda: CombineConfig(width=24, noisy_clamp=1.0, own_kernel=7, own_kernel_loss=0.5, kernel_clamp=1.0),
+        "own": lambda: CombineConfig(noisy_clamp=1.0, own_kernel=7, own_kernel_loss=0.5, kernel_clamp=1.0),
     },
     paper=_PAPER,
     description="U-Net -> per-pixel softmax kernels over OIDN 2.5.1's output and the noisy mean (ens_kpcn/kpcn: and a frozen kpcn-pixel)",
