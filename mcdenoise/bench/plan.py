@@ -38,11 +38,15 @@ TARGETS: tuple[tuple[str, int | None, float], ...] = (
     # Issue 20: the combiner's own cost (OIDN's output is its input), so the whole path is <= 1.5x.
     ("combine:small", None, 0.5),
     ("combine:ens", None, 0.5),
+    ("combine:own", None, 0.5),
+    ("combine:ens_kpcn", None, 0.5),
+    ("combine:kpcn", None, 0.5),
 )
 
 #: Beyond every registered model's ``small`` preset: the presets the papers' timings and the
-#: issue's targets name (WSKP is timed as published; the layer paper's timed U-Net size).
-EXTRA_METHODS: tuple[str, ...] = ("wskp:paper", "wskp:paper3", "layer_optimized:paper_timed")
+#: issue's targets name (WSKP is timed as published; the layer paper's timed U-Net size; the
+#: combiner inside issue 20's 1.5x).
+EXTRA_METHODS: tuple[str, ...] = ("wskp:paper", "wskp:paper3", "layer_optimized:paper_timed", "combine:own")
 
 DEFAULT_METHODS = ("oidn:high", "oidn:fast")
 
