@@ -74,16 +74,24 @@ def test_oidn_is_a_model_name_everywhere(tmp_path) -> None:
 
 
 def test_the_shipped_combiner_is_picked_by_its_own_card_for_colour_albedo_normal() -> None:
-    """Catches the shipped ens combiner left out of the pick (or picked without the guides it
-    needs): its card's third-party validation beats OIDN, so colour + albedo + normal gets it,
-    and colour alone gets OIDN."""
+    """Catches the shipped pixel-only combiners left out of the pick (or one picked without the
+    guides it needs, or against its card): colour + albedo + normal gets the combiner whose card
+    ranks best among those that need no more than that, and it beats OIDN there; colour alone gets
+    OIDN; a Blender file with the same channels never gets a combiner whose card is not for it."""
     from mcdenoise.models.weights import shipped
 
-    card = next(sw.card for sw in shipped() if sw.name == "combine" and sw.preset == "ens")
-    mine, oidn = card_validation(card)
+    pixel_only = [sw for sw in shipped() if sw.name == "combine" and sw.preset in ("ens", "own")]
+    best = min(pixel_only, key=lambda sw: card_validation(sw.card)[0])
+    mine, oidn = card_validation(best.card)
     assert mine < oidn
-    model, info = choose_model(_inputs(albedo=True, normal=True))
-    assert info["name"] == "combine" and info["preset"] == "ens", info["why"]
+    inputs = _inputs(albedo=True, normal=True)
+    model, info = choose_model(inputs)
+    assert info["name"] == "combine" and info["preset"] == best.preset, info["why"]
+    inputs.source = "blender"
+    model, info = choose_model(inputs)
+    assert info["name"] == "combine", info["why"]
+    allowed = [sw for sw in pixel_only if "blender" not in (sw.card.get("not_for") or {})]
+    assert info["preset"] == min(allowed, key=lambda sw: card_validation(sw.card)[0]).preset
     model, info = choose_model(_inputs())
     assert isinstance(model, OIDNMethod)
 
