@@ -127,8 +127,8 @@ MUTATIONS: tuple[Mutation, ...] = (
         (
             Edit(
                 KPCN,
-                "z = _mask_out_of_image_taps(z, self.config.kernel_size)",
-                "z = _mask_out_of_image_taps(torch.relu(z), self.config.kernel_size)",
+                "out[name] = apply_kernels(x[:, :3], z, self.config.kernel_size)",
+                "out[name] = apply_kernels(x[:, :3], torch.relu(z), self.config.kernel_size)",
             ),
         ),
     ),

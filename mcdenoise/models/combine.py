@@ -158,16 +158,11 @@ def demodulate(batch: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tens
 
 def combine_features(batch: dict[str, torch.Tensor], use_variance: bool = False, prefiltered: bool = False,
                      kernel: torch.Tensor | None = None, own: bool = False) -> torch.Tensor:
-    """The feature pieces of :func:`feature_list`, concatenated."""
-    return torch.cat(feature_list(batch, use_variance, prefiltered, kernel, own), dim=1)
-
-
-def feature_list(batch: dict[str, torch.Tensor], use_variance: bool = False, prefiltered: bool = False,
-                 kernel: torch.Tensor | None = None, own: bool = False) -> list[torch.Tensor]:
-    """Pieces, in channel order, of the ``(B, N_FEATURES [+ N_VARIANCE_FEATURES] [+ N_PF_FEATURES] [+ N_PF_FEATURES], H, W)`` inputs
-    of the weight network, exposure-normalised where it matters (log colour; ratios, not
+    """``(B, N_FEATURES [+ N_VARIANCE_FEATURES] [+ N_PF_FEATURES] [+ N_PF_FEATURES] [+ N_OWN_FEATURES], H, W)``
+    inputs of the weight network, exposure-normalised where it matters (log colour; ratios, not
     differences). ``kernel``: the kernel-model candidate ``(B, 3, H, W)``, described like ``oidn_pf``
-    (its log colour and relative deviation from OIDN: the last N_PF_FEATURES channels)."""
+    (its log colour and relative deviation from OIDN); ``own``: the log demodulated noisy mean the
+    own kernel filters (:func:`demodulate`)."""
     oidn = batch["oidn"].clamp_min(0)
     noisy = batch["radiance"].clamp_min(0)
     lo, ln = _lum(oidn), _lum(noisy)
@@ -187,7 +182,7 @@ def feature_list(batch: dict[str, torch.Tensor], use_variance: bool = False, pre
         feats += [torch.log1p(kc), torch.log1p((_lum(kc) - lo).abs() / (lo + EPS))]
     if own:
         feats.append(torch.log1p(demodulate(batch)[0]))
-    return feats
+    return torch.cat(feats, dim=1)
 
 
 def max3x3(x: torch.Tensor) -> torch.Tensor:
