@@ -14,6 +14,11 @@ Parts (each prints a Markdown table; medians of ``--repeats`` interleaved calls 
 * ``unet``: one U-Net of ``layer_optimized``, ``layer`` and ``sbmc`` small alone at 1080p,
   float32 against its bfloat16 trunk form (separates precision from the per-sample work, whose
   run-to-run spread is large).
+* ``combine``: the combiner's pieces at 1080p that campaign 11 sped up: the noisy clamp's 3x3
+  maximum (``max_pool2d`` of the replicate-padded image against :func:`max3x3`), and the ``own``
+  preset's 1x1 head on a bfloat16 channels_last trunk output (16 -> 52 and 24 -> 52 channels:
+  the NCHW reshape + ``baddbmm`` path :class:`PointwiseConv` took before against the oneDNN
+  convolution it now leaves NHWC input to).
 * ``precision``: whole models, float32 against bfloat16 trunks, at 1280x720 and 8 spp.
 * ``thp``: whole models in child processes with ``THP_MEM_ALLOC_ENABLE`` 1 and 0 (huge pages
   are chosen once per process), median of the calls after two warm-ups.
@@ -135,7 +140,26 @@ def _child(label: str, size: str, repeats: int) -> None:
         print(_medians({"m": lambda: model(batch)}, repeats)["m"])
 
 
-PARTS = ("pointwise", "convs", "layout", "unet", "precision", "thp")
+def part_combine(repeats: int) -> None:
+    from mcdenoise.models.combine import max3x3
+
+    print("| piece at 1920x1080 | before ms | now ms | speed-up |\n|---|---:|---:|---:|")
+    x = torch.rand(1, 3, 1080, 1920)
+    with torch.inference_mode():
+        t = _medians({"before": lambda: F.max_pool2d(F.pad(x, (1, 1, 1, 1), mode="replicate"), 3, stride=1),
+                      "now": lambda: max3x3(x)}, repeats)
+        print(f"| 3x3 maximum, 3 ch float32 | {t['before']:.0f} | {t['now']:.0f} | {t['before'] / t['now']:.1f}x |", flush=True)
+        for ci in (16, 24):
+            head = PointwiseConv(ci, 52).to(torch.bfloat16)
+            y = torch.randn(1, ci, 1080, 1920).to(torch.bfloat16, memory_format=CL)
+            wt = head.weight.view(52, ci).unsqueeze(0)
+            t = _medians({"before": lambda: torch.baddbmm(head.bias.view(1, -1, 1), wt, y.reshape(1, ci, -1)),
+                          "now": lambda: head(y)}, repeats)
+            print(f"| 1x1 head {ci} -> 52, bfloat16 channels_last | {t['before']:.0f} | {t['now']:.0f} | "
+                  f"{t['before'] / t['now']:.1f}x |", flush=True)
+
+
+PARTS = ("pointwise", "convs", "layout", "unet", "combine", "precision", "thp")
 
 
 def main() -> None:

@@ -188,7 +188,8 @@ def combine_features(batch: dict[str, torch.Tensor], use_variance: bool = False,
 def max3x3(x: torch.Tensor) -> torch.Tensor:
     """(B, C, H, W) -> same: the maximum over each pixel's 3x3 neighbourhood, the edge repeated
     (= ``max_pool2d`` of the replicate-padded image). Separable, in shifted maxima: CPU
-    ``max_pool2d`` also computes indices, 3x slower at 1080p."""
+    ``max_pool2d`` also computes indices, 8x slower at 1080p (``benchmarks/bench_fast_paths.py
+    --parts combine``)."""
     p = F.pad(x, (0, 0, 1, 1), mode="replicate")
     rows = torch.maximum(torch.maximum(p[..., :-2, :], p[..., 1:-1, :]), p[..., 2:, :])
     p = F.pad(rows, (1, 1, 0, 0), mode="replicate")
