@@ -4,6 +4,9 @@ the start of a fine-tune into a preset whose layers match but whose inputs or ru
     python scripts/reconfigure_weights.py mcdenoise/models/shipped/kpcn-small.safetensors \
         runs/kpcn_pixel_init.safetensors --preset pixel --set feature_hit=first variance=window variance_window=5
 
+    python scripts/reconfigure_weights.py mcdenoise/models/shipped/sbmc-small.safetensors \
+        mcdenoise/models/shipped/sbmc-small.safetensors --keep-step --set consistency=2
+
 Values are read as JSON where they parse (5, 0.25, true), else as strings. The result must still
 build: the model is constructed from the new configuration and loads the tensors strictly.
 """
@@ -35,6 +38,8 @@ def main() -> None:
     ap.add_argument("dst")
     ap.add_argument("--preset", help="preset name to record (default: the source's)")
     ap.add_argument("--set", nargs="+", default=[], metavar="FIELD=VALUE")
+    ap.add_argument("--keep-step", action="store_true",
+                    help="keep the source's training step (a rule set after training on shipped weights); default 0, a new start")
     a = ap.parse_args()
     with safe_open(a.src, "pt") as f:
         meta = dict(f.metadata() or {})
@@ -45,7 +50,9 @@ def main() -> None:
         run = json.loads((Path(a.src).parent / "config.json").read_text())
         meta.update(model=run["train"]["model"], preset=run["train"]["preset"], model_config=json.dumps(run["model_config"]))
     cfg = apply_sets(json.loads(meta["model_config"]), a.set)
-    meta.update(model_config=json.dumps(cfg), step="0", preset=a.preset or meta.get("preset", ""))
+    meta.update(model_config=json.dumps(cfg), preset=a.preset or meta.get("preset", ""))
+    if not a.keep_step:
+        meta["step"] = "0"
     model = model_from_config(meta["model"], meta["preset"], cfg)  # refuses unknown fields
     model.load_state_dict(tensors, strict=True)
     save_file(tensors, a.dst, metadata=meta)

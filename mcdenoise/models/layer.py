@@ -39,6 +39,7 @@ from mcdenoise.models.layer_config import (  # noqa: F401  (LAYER_CHANNELS, Laye
 )
 from mcdenoise.models.base import Denoiser, register_model
 from mcdenoise.models.emitters import ALBEDO_CHANNELS, as_reflectance, batch_emitter_mask, fill_emitters, pass_through
+from mcdenoise.models.consistency import check_consistency, consistency_clamp
 from mcdenoise.models.exposure import check_key, scale_batch, unscale
 from mcdenoise.ops.composite import composite_layers, gather_layer_sums, splat_layer_sums
 from mcdenoise.ops.multiscale import build_pyramid, combine_levels
@@ -92,6 +93,7 @@ class LayerDenoiser(Denoiser):
         if cfg.layers < 1:
             raise ValueError(f"layers must be >= 1, got {cfg.layers}")
         check_key("layer", cfg.autoexposure)
+        check_consistency("layer", cfg.consistency)
         if cfg.compositing not in ("alpha", "weighted"):
             raise ValueError(f"compositing must be 'alpha' or 'weighted', got {cfg.compositing!r}")
         if cfg.kernel_size % 2 != 1:
@@ -223,7 +225,8 @@ class LayerDenoiser(Denoiser):
         s = self.exposure_of(batch)  # of the image as given (mcdenoise.models.exposure)
         inner = fill_emitters(batch, emitters)
         out = self._denoise(inner if s is None else scale_batch(inner, s))  # type: ignore[arg-type]
-        return pass_through(unscale(out, s), batch["radiance"], emitters)
+        out = pass_through(unscale(out, s), batch["radiance"], emitters)
+        return consistency_clamp(out, batch["radiance"], self.config.consistency)
 
     def _denoise(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
         cfg = self.config

@@ -69,6 +69,10 @@ class LayerConfig:
     """Key of the image-level autoexposure (:mod:`mcdenoise.models.exposure`; not in the paper):
     the radiance is scaled to it before the network and back after, so the output follows
     exposure exactly. None: the network sees the radiance as given."""
+    consistency: float | None = None
+    """Clamp each output pixel to this many (shrunk) standard errors around the mean of its own
+    samples (:mod:`mcdenoise.models.consistency`; not in the paper). Set after training, on held-out
+    images; None: no clamp."""
 
 
 def _paper_layer(**kw: object) -> LayerConfig:

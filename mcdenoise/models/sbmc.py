@@ -30,6 +30,7 @@ from mcdenoise.data.channels import SCENE_FEATURES, num_components
 from mcdenoise.models.blocks import FCStack, UNet, signed_log1p
 from mcdenoise.models.base import Denoiser, register_model
 from mcdenoise.models.emitters import ALBEDO_CHANNELS, as_reflectance, batch_emitter_mask, fill_emitters, pass_through
+from mcdenoise.models.consistency import check_consistency, consistency_clamp
 from mcdenoise.models.exposure import check_key, scale_batch, unscale
 from mcdenoise.ops.gather import gather, gather_rows
 from mcdenoise.ops.kernels import destination_max, per_destination_exp, per_pixel_exp
@@ -100,6 +101,10 @@ class SBMCConfig:
     """Key of the image-level autoexposure (:mod:`mcdenoise.models.exposure`; not in the paper):
     the radiance is scaled to it before the network and back after, so the output follows
     exposure exactly. None: the network sees the radiance as given."""
+    consistency: float | None = None
+    """Clamp each output pixel to this many (shrunk) standard errors around the mean of its own
+    samples (:mod:`mcdenoise.models.consistency`; not in the paper). Set after training, on held-out
+    images; None: no clamp."""
 
 
 def _paper(**kw: object) -> SBMCConfig:
@@ -139,6 +144,7 @@ class SBMC(Denoiser):
         if cfg.steps < 1 or cfg.fc_layers < 1:
             raise ValueError("steps and fc_layers must be >= 1")
         check_key("SBMC", cfg.autoexposure)
+        check_consistency("SBMC", cfg.consistency)
         self.sample_features = sum(num_components(c) for c in cfg.channels)
         n_in = (2 * self.sample_features if not cfg.per_sample else self.sample_features) + len(SCENE_FEATURES)
         d = cfg.embed_width
@@ -311,7 +317,8 @@ class SBMC(Denoiser):
         s = self.exposure_of(batch)  # of the image as given (mcdenoise.models.exposure)
         inner = fill_emitters(batch, emitters)
         out = self._denoise(inner if s is None else scale_batch(inner, s))  # type: ignore[arg-type]
-        return pass_through(unscale(out, s), batch["radiance"], emitters)
+        out = pass_through(unscale(out, s), batch["radiance"], emitters)
+        return consistency_clamp(out, batch["radiance"], self.config.consistency)
 
     def _denoise(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
         cfg = self.config

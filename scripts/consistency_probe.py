@@ -1,0 +1,80 @@
+"""Choose a per-sample model's ``consistency`` (issue 19, "never worse than the noisy input"): its
+output clamped per pixel to ``k`` shrunk standard errors of the pixel's own samples
+(:mod:`mcdenoise.models.consistency`), for each ``k``, on held-out images at each spp. Prints the
+geometric-mean and median relMSE, the mean PSNR, and on how many images the result is worse than
+the noisy input. The rule it serves (docs/models/consistency.md): the ``k`` with the lowest sum
+over spp of geometric-mean relMSE among those whose mean PSNR is nowhere below the model's
+without the clamp.
+
+    python scripts/consistency_probe.py data/detail_ref data/detail_ref2 data/rich_ref3 data/rich_val --models sbmc-small layer-small --spp 4 8 16 --ks 1.5 2 3 4
+"""
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+import torch
+from mcdenoise.data.format import ImageFolder
+from mcdenoise.eval.methods import Inputs, ModelMethod
+from mcdenoise.eval.metrics import psnr, relmse
+from mcdenoise.models.consistency import consistency_clamp
+from mcdenoise.models.weights import load_denoiser
+
+
+def folders_of(roots: list[str]) -> list[Path]:
+    out: list[Path] = []
+    for root in map(Path, roots):
+        if (root / "manifest.json").is_file():
+            from mcdenoise.data.dataset import Dataset
+
+            out += [im.path for im in Dataset(root).images("val") if im.has_reference]
+        else:
+            out += sorted(m.parent for m in root.rglob("meta.json") if (m.parent / "reference.exr").is_file())
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("roots", nargs="+")
+    ap.add_argument("--models", nargs="+", required=True)
+    ap.add_argument("--spp", nargs="+", type=int, default=[4, 8, 16])
+    ap.add_argument("--ks", nargs="+", type=float, default=[1.5, 2, 3, 4])
+    a = ap.parse_args()
+    folders = folders_of(a.roots)
+    methods = []
+    for spec in a.models:
+        m, info = load_denoiser(spec)
+        methods.append(ModelMethod(info.get("label", spec), m, info, "cpu"))
+    for spp in a.spp:
+        res: dict = {}
+        for f in folders:
+            im = ImageFolder(f)
+            if im.samples is None:
+                continue
+            ref = im.read_reference(["radiance"])["radiance"]
+            x = Inputs(im, spp)
+            mu = x.guides["radiance"]
+            r_noisy, p_noisy = relmse(mu, ref), psnr(mu, ref)
+            for meth in methods:
+                if meth.model.input_kind != "samples":
+                    raise SystemExit(f"{meth.name}: the clamp needs per-sample inputs")
+                batch = meth.prepare(x)
+                meth.model.config.consistency = None  # the model's own output, then each k on it
+                out = torch.from_numpy(meth.run(batch))[None]
+                r = res.setdefault(meth.name, {})
+                r.setdefault("none", []).append((relmse(out[0].numpy(), ref), psnr(out[0].numpy(), ref), r_noisy, p_noisy))
+                for k in a.ks:
+                    c = consistency_clamp(out, batch["radiance"], k)[0].numpy()
+                    r.setdefault(f"k {k:g}", []).append((relmse(c, ref), psnr(c, ref), r_noisy, p_noisy))
+        for name, r in res.items():
+            for key, v in r.items():
+                v = np.array(v)
+                wr, wp = int((v[:, 0] >= v[:, 2]).sum()), int((v[:, 1] <= v[:, 3]).sum())
+                print(f"spp {spp:2d} {name:12s} {key:6s}: relMSE geo {np.exp(np.log(v[:, 0]).mean()):.5f} median "
+                      f"{np.median(v[:, 0]):.5f}  PSNR {v[:, 1].mean():.4f}  worse than noisy: relMSE {wr}, PSNR {wp} of {len(v)}",
+                      flush=True)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,143 @@
+"""The sample-consistency clamp (mcdenoise/models/consistency.py) and the models that apply it.
+
+Each test names the bug it catches."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from mcdenoise.infer.run import denoise_inputs
+from mcdenoise.infer.sources import from_arrays
+from mcdenoise.models import build_model, synthetic_batch
+from mcdenoise.models.consistency import PRIOR, WINDOW, consistency_clamp, sample_bounds
+
+SAMPLE_MODELS = ["sbmc", "layer"]
+
+
+def _samples(s: int = 4, h: int = 9, w: int = 11, seed: int = 0) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    # Heavy-tailed like Monte Carlo: mostly dim, now and then a bright sample.
+    x = torch.rand(1, s, 3, h, w, generator=g, dtype=torch.float64) ** 4 * 5
+    return x
+
+
+def test_bounds_match_a_plain_loop() -> None:
+    """Catches a biased variance (S instead of S - 1), zero padding at the border instead of the
+    image's own pixels, or the shrinkage weights swapped: the bounds equal a per-pixel loop in float64."""
+    x = _samples()
+    k = 2.5
+    lo, hi = sample_bounds(x, k)
+    a = x[0].numpy()
+    s, c, h, w = a.shape
+    var = a.var(axis=0, ddof=1)
+    r = WINDOW // 2
+    for ch in range(c):
+        for y in range(h):
+            for xx in range(w):
+                box = [var[ch, min(max(y + dy, 0), h - 1), min(max(xx + dx, 0), w - 1)]
+                       for dy in range(-r, r + 1) for dx in range(-r, r + 1)]
+                shrunk = ((s - 1) * var[ch, y, xx] + PRIOR * np.mean(box)) / (s - 1 + PRIOR)
+                half = k * np.sqrt(shrunk / s)
+                m = a[:, ch, y, xx].mean()
+                assert lo[0, ch, y, xx].item() == pytest.approx(m - half, rel=1e-12, abs=1e-12)
+                assert hi[0, ch, y, xx].item() == pytest.approx(m + half, rel=1e-12, abs=1e-12)
+
+
+def test_clamp_keeps_what_lies_inside_and_bounds_the_rest() -> None:
+    """Catches minimum and maximum swapped (every pixel pinned to a bound) or a clamp that moves
+    pixels already inside the interval."""
+    x = _samples(seed=1)
+    g = torch.Generator().manual_seed(2)
+    out = torch.rand(1, 3, 9, 11, generator=g, dtype=torch.float64) * 3
+    lo, hi = sample_bounds(x, 2.0)
+    got = consistency_clamp(out, x, 2.0)
+    assert bool(((got >= lo) & (got <= hi)).all())
+    inside = (out >= lo) & (out <= hi)
+    assert inside.any() and (~inside).any()
+    assert torch.equal(got[inside], out[inside])
+
+
+def test_samples_that_agree_everywhere_give_their_value() -> None:
+    """A constant image stays constant: where every sample of every pixel agrees, the variance is
+    0 and any output is brought back to the samples' value (catches an epsilon that lets a
+    network's blur through)."""
+    value = torch.rand(1, 1, 3, 8, 8, dtype=torch.float64)
+    x = value.expand(1, 5, 3, 8, 8).clone()
+    out = torch.rand(1, 3, 8, 8, dtype=torch.float64)
+    # the mean of five equal numbers may round by an ulp; the output may not move further
+    torch.testing.assert_close(consistency_clamp(out, x, 3.0), value[:, 0], rtol=1e-15, atol=0)
+
+
+def test_sample_order_does_not_matter() -> None:
+    """Shuffled samples give the same output (catches a bound built from the first samples only)."""
+    x = _samples(s=6, seed=3)
+    out = torch.rand(1, 3, 9, 11, dtype=torch.float64) * 2
+    perm = torch.randperm(6, generator=torch.Generator().manual_seed(4))
+    torch.testing.assert_close(consistency_clamp(out, x[:, perm], 2.0), consistency_clamp(out, x, 2.0),
+                               rtol=1e-12, atol=1e-14)
+
+
+@pytest.mark.parametrize("scale", [1e-3, 7.0, 1e4])
+def test_follows_exposure(scale: float) -> None:
+    """The same picture brighter gives the same picture brighter (catches an absolute epsilon in
+    the variance, which would clamp dim images harder than bright ones)."""
+    x = _samples(seed=5)
+    out = torch.rand(1, 3, 9, 11, dtype=torch.float64) * 2
+    torch.testing.assert_close(consistency_clamp(out * scale, x * scale, 2.0), consistency_clamp(out, x, 2.0) * scale,
+                               rtol=1e-10, atol=0)
+
+
+def test_none_and_one_sample_pass_through() -> None:
+    """Catches a clamp applied without a variance estimate (one sample pins the output to it)."""
+    out = torch.rand(1, 3, 5, 5)
+    assert consistency_clamp(out, torch.rand(1, 1, 3, 5, 5), 2.0) is out
+    assert consistency_clamp(out, torch.rand(1, 4, 3, 5, 5), None) is out
+
+
+def test_gradients_reach_the_output_and_the_samples() -> None:
+    """gradcheck in float64 (a clamp's kinks have measure zero on random inputs)."""
+    x = _samples(s=3, h=6, w=6, seed=6).requires_grad_()
+    out = (torch.rand(1, 3, 6, 6, dtype=torch.float64) * 2).requires_grad_()
+    assert torch.autograd.gradcheck(lambda o, s: consistency_clamp(o, s, 1.5), (out, x))
+
+
+@pytest.mark.parametrize("name", SAMPLE_MODELS)
+def test_models_apply_it_to_their_own_output(name: str) -> None:
+    """Catches a model that ignores its ``consistency`` or clamps before the emitter pass-through
+    and the exposure's way back (bounds at the wrong brightness)."""
+    torch.manual_seed(0)
+    model = build_model(name, "small", autoexposure=0.18).eval()
+    batch = synthetic_batch(model, spp=4, height=24, width=24)
+    with torch.no_grad():
+        raw = model(batch)
+        model.config.consistency = 1.0
+        clamped = model(batch)
+    torch.testing.assert_close(clamped, consistency_clamp(raw, batch["radiance"], 1.0), rtol=0, atol=0)
+    assert not torch.equal(clamped, raw)  # k = 1 binds somewhere on random inputs
+
+
+@pytest.mark.parametrize("k", [0.0, -1.0])
+def test_refuses_a_non_positive_k(k: float) -> None:
+    with pytest.raises(ValueError, match="consistency"):
+        build_model("sbmc", "small", consistency=k)
+
+
+def test_tiles_match_the_whole_image() -> None:
+    """Catches a tile overlap that misses the clamp's neighbourhood (seams where the box of a
+    border pixel reads the tile's edge instead of the image)."""
+    torch.manual_seed(0)
+    model = build_model("layer", "small", autoexposure=0.18, consistency=1.5).eval()
+    b = synthetic_batch(model, batch=1, spp=3, height=64, width=72)
+    b["radiance"][..., 36:] *= 40
+    samples = {k: v[0].numpy() for k, v in b.items() if k != "scene_features"}
+
+    def run(tile):
+        inp = from_arrays(samples["radiance"].mean(axis=0), samples=samples, scene_features=b["scene_features"][0].numpy())
+        return denoise_inputs(inp, model, device="cpu", tile=tile, progress=False)
+
+    whole, info_whole = run(None)
+    tiled, info = run(16)
+    assert len(info.plan) > 1 and len(info_whole.plan) == 1
+    assert np.abs(tiled - whole).max() / np.abs(whole).max() < 1e-4
