@@ -171,21 +171,10 @@ def _sample_major(comps: Mapping[str, list[Any]], *, spp: int, h: int, W: int,
     8 spp on 2 cores). Tried and slower: scattering to sample-major order from inside the trace
     kernel (its time doubled: ~45 strided store streams per lane) and a Dr.Jit gather kernel.
     """
-    mi = mitsuba()
-    import drjit as dr
-
     n = spp * h * W
-    # np.asarray only aliases Dr.Jit memory on the CPU (LLVM) backend.
-    aliasable = dr.backend_v(mi.Float) == dr.JitBackend.LLVM
     res: dict[str, np.ndarray] = {}
     for k, cs in comps.items():
-        shape = (spp, len(cs), h, W)
-        if aliasable and len(cs) * n <= _MAX_JIT_WIDTH:
-            buf = dr.empty(mi.Float, len(cs) * n)
-            dr.make_opaque(buf)  # allocate now; numpy's view keeps the buffer alive
-            arr = np.asarray(buf).reshape(shape)
-        else:
-            arr = np.empty(shape, dtype=np.float32)
+        arr = host_array((spp, len(cs), h, W))
         for i, c in enumerate(cs):
             a = np.asarray(c, dtype=np.float32).reshape(-1)
             if a.size == 1 and n != 1:
@@ -200,6 +189,22 @@ def _sample_major(comps: Mapping[str, list[Any]], *, spp: int, h: int, W: int,
 
 #: Largest Dr.Jit array (sizes are 32-bit).
 _MAX_JIT_WIDTH = 2**32 - 1
+
+
+def host_array(shape: tuple[int, ...]) -> np.ndarray:
+    """An uninitialised float32 array of ``shape``, taken from Dr.Jit's allocation cache where
+    numpy can alias it (the LLVM backend): that memory is mapped already by earlier renders, while
+    a fresh numpy array pays a page fault per 4 KiB on first touch, which cost more than the copy
+    into it (:func:`_sample_major`). Elsewhere a plain ``np.empty``."""
+    mi = mitsuba()
+    import drjit as dr
+
+    n = int(np.prod(shape))
+    if dr.backend_v(mi.Float) == dr.JitBackend.LLVM and 0 < n <= _MAX_JIT_WIDTH:
+        buf = dr.empty(mi.Float, n)
+        dr.make_opaque(buf)  # allocate now; numpy's view keeps the buffer alive
+        return np.asarray(buf).reshape(shape)
+    return np.empty(shape, dtype=np.float32)
 
 
 def _row_bands(width: int, height: int, spp: int, chunk_samples: int) -> list[slice]:

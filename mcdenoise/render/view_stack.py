@@ -28,7 +28,7 @@ from mcdenoise.render.motion import _pose_objects, _slice_times
 from mcdenoise.render.prepare import _prepare, _restore
 from mcdenoise.render.seeds import stream_seed
 from mcdenoise.render.settings import RenderSettings
-from mcdenoise.render.trace import _row_bands, _trace_chunk
+from mcdenoise.render.trace import _row_bands, _trace_chunk, host_array
 
 __all__ = ["check_sampler", "iter_view_stack", "render_view_stack", "view_transforms"]
 
@@ -131,9 +131,16 @@ def render_view_stack(
     caller bounds the stack, e.g. ``procedural_image.STACK_BYTES``)."""
     S, H, W = settings.spp, settings.height, settings.width
     out: list[dict[str, np.ndarray]] = [{} for _ in cameras]
+    whole = (slice(0, S), slice(0, H))
     for v, samples, rows, chunk in iter_view_stack(scene, settings, cameras, sensor_camera, seed=seed):
         for k, a in chunk.items():
-            if k not in out[v]:
-                out[v][k] = np.zeros((S, a.shape[1], H, W), dtype=np.float32)
+            if (samples, slice(rows.start, rows.stop)) == whole and k not in out[v]:
+                # The view lies whole in one band (a static scene's usual case): keep the band's
+                # rows as they are. Copying them into fresh arrays cost 0.14 s of a 1.1 s image at
+                # 128x128, 16 spp, mostly the new pages' first-touch faults (docs/DATASETS.md).
+                out[v][k] = a
+                continue
+            if k not in out[v]:  # every sample and row of it is written below, by the view's pieces
+                out[v][k] = host_array((S, a.shape[1], H, W))
             out[v][k][samples, :, rows] = a
     return out
