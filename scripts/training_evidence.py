@@ -102,24 +102,31 @@ def versions(path: str) -> list[tuple[str, dict[str, Any]]]:
 
 
 def points(spp: int) -> list[dict[str, Any]]:
-    rows, seen_sha = [], set()
+    rows: list[dict[str, Any]] = []
     for card_path in sorted((ROOT / SHIPPED).glob("*.json")):
         rel = f"{SHIPPED}/{card_path.name}"
+        at: dict[str, int] = {}  # weights -> their row
         for commit, card in versions(rel):
             v = ((card.get("validation") or {}).get("spp") or {}).get(str(spp)) or {}
             model, oidn = (v.get("model") or {}).get("relmse"), (v.get("oidn-high") or {}).get("relmse")
             sha = card.get("weights_sha256")
-            if model is None or (sha, spp) in seen_sha:
-                continue  # no third-party block, or the same weights annotated again
-            seen_sha.add((sha, spp))
+            if model is None:
+                continue  # no third-party block
             st = stages(card)
-            rows.append({
+            row = {
                 "model": card_path.stem, "commit": commit, "relmse": model, "oidn": oidn,
                 "cpu_h": sum(s["cpu_s"] or 0.0 for s in st) / 3600,
                 "dataset_mp": chain_dataset_mp(st),
                 "seen_mp": sum(seen_mp(s["train"], s["steps"]) for s in st),
                 "stages": len(st),
-            })
+            }
+            if sha in at:
+                # The same weights annotated again: the newest annotation counts (a rule set after
+                # training, such as a clamp, changes the weights' file before its card is re-annotated).
+                rows[at[sha]] = row
+            else:
+                at[sha] = len(rows)
+                rows.append(row)
     return rows
 
 
