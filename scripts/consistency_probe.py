@@ -11,27 +11,13 @@ without the clamp.
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
-
 import numpy as np
 import torch
-from mcdenoise.data.format import ImageFolder
+from mcdenoise.eval.images import collect_images
 from mcdenoise.eval.methods import Inputs, ModelMethod
 from mcdenoise.eval.metrics import psnr, relmse
 from mcdenoise.models.consistency import consistency_clamp
 from mcdenoise.models.weights import load_denoiser
-
-
-def folders_of(roots: list[str]) -> list[Path]:
-    out: list[Path] = []
-    for root in map(Path, roots):
-        if (root / "manifest.json").is_file():
-            from mcdenoise.data.dataset import Dataset
-
-            out += [im.path for im in Dataset(root).images("val") if im.has_reference]
-        else:
-            out += sorted(m.parent for m in root.rglob("meta.json") if (m.parent / "reference.exr").is_file())
-    return out
 
 
 def main() -> None:
@@ -41,15 +27,15 @@ def main() -> None:
     ap.add_argument("--spp", nargs="+", type=int, default=[4, 8, 16])
     ap.add_argument("--ks", nargs="+", type=float, default=[1.5, 2, 3, 4])
     a = ap.parse_args()
-    folders = folders_of(a.roots)
+    # The val split of a dataset, every image of a folder of image folders (eval's own rule).
+    images = [e.folder for e in collect_images(a.roots, split="val")[0]]
     methods = []
     for spec in a.models:
         m, info = load_denoiser(spec)
         methods.append(ModelMethod(info.get("label", spec), m, info, "cpu"))
     for spp in a.spp:
         res: dict = {}
-        for f in folders:
-            im = ImageFolder(f)
+        for im in images:
             if im.samples is None:
                 continue
             ref = im.read_reference(["radiance"])["radiance"]

@@ -8,10 +8,9 @@ import numpy as np
 import pytest
 import torch
 
-from mcdenoise.infer.run import denoise_inputs
-from mcdenoise.infer.sources import from_arrays
 from mcdenoise.models import build_model, synthetic_batch
 from mcdenoise.models.consistency import PRIOR, WINDOW, consistency_clamp, sample_bounds
+from test_model_exposure import assert_sample_tiles_match_whole
 
 SAMPLE_MODELS = ["sbmc", "layer"]
 
@@ -130,15 +129,4 @@ def test_tiles_match_the_whole_image() -> None:
     border pixel reads the tile's edge instead of the image)."""
     torch.manual_seed(0)
     model = build_model("layer", "small", autoexposure=0.18, consistency=1.5).eval()
-    b = synthetic_batch(model, batch=1, spp=3, height=64, width=72)
-    b["radiance"][..., 36:] *= 40
-    samples = {k: v[0].numpy() for k, v in b.items() if k != "scene_features"}
-
-    def run(tile):
-        inp = from_arrays(samples["radiance"].mean(axis=0), samples=samples, scene_features=b["scene_features"][0].numpy())
-        return denoise_inputs(inp, model, device="cpu", tile=tile, progress=False)
-
-    whole, info_whole = run(None)
-    tiled, info = run(16)
-    assert len(info.plan) > 1 and len(info_whole.plan) == 1
-    assert np.abs(tiled - whole).max() / np.abs(whole).max() < 1e-4
+    assert_sample_tiles_match_whole(model, spp=3)
