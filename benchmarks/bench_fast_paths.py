@@ -19,6 +19,9 @@ Parts (each prints a Markdown table; medians of ``--repeats`` interleaved calls 
   preset's 1x1 head on a bfloat16 channels_last trunk output (16 -> 52 and 24 -> 52 channels:
   the NCHW reshape + ``baddbmm`` path :class:`PointwiseConv` took before against the oneDNN
   convolution it now leaves NHWC input to).
+* ``consistency``: the sample models' consistency clamp (:mod:`mcdenoise.models.consistency`) at
+  1080p and 4 / 8 / 16 spp, with the variance from ``torch.var_mean`` over the sample axis (before)
+  against the two written-out passes it uses.
 * ``precision``: whole models, float32 against bfloat16 trunks, at 1280x720 and 8 spp.
 * ``thp``: whole models in child processes with ``THP_MEM_ALLOC_ENABLE`` 1 and 0 (huge pages
   are chosen once per process), median of the calls after two warm-ups.
@@ -159,7 +162,25 @@ def part_combine(repeats: int) -> None:
                   f"{t['before'] / t['now']:.1f}x |", flush=True)
 
 
-PARTS = ("pointwise", "convs", "layout", "unet", "combine", "precision", "thp")
+def part_consistency(repeats: int) -> None:
+    from mcdenoise.models import consistency
+
+    print("| spp at 1920x1080 | var_mean ms | now ms | speed-up |\n|---|---:|---:|---:|")
+    out = torch.rand(1, 3, 1080, 1920)
+
+    def before(x: torch.Tensor) -> torch.Tensor:  # the first version: one var_mean over the sample axis
+        var, mean = torch.var_mean(x, dim=1, correction=1)
+        return var + mean
+
+    for spp in (4, 8, 16):
+        x = torch.rand(1, spp, 3, 1080, 1920)
+        with torch.inference_mode():
+            t = _medians({"before": lambda: before(x), "now": lambda: consistency.consistency_clamp(out, x, 2.0)},
+                         repeats)
+        print(f"| {spp} | {t['before']:.0f} | {t['now']:.0f} | {t['before'] / t['now']:.1f}x |", flush=True)
+
+
+PARTS = ("pointwise", "convs", "layout", "unet", "combine", "consistency", "precision", "thp")
 
 
 def main() -> None:
