@@ -1,6 +1,7 @@
-"""Choose a per-sample model's ``consistency`` (issue 19, "never worse than the noisy input"): its
+"""Choose a model's ``consistency`` (issue 19, "never worse than the noisy input"): its
 output clamped per pixel to ``k`` shrunk standard errors of the pixel's own samples
-(:mod:`mcdenoise.models.consistency`), for each ``k``, on held-out images at each spp. Prints the
+(:mod:`mcdenoise.models.consistency`; a pixel model's from the input's per-pixel variance, as
+``denoise`` and ``eval`` apply it), for each ``k``, on held-out images at each spp. Prints the
 geometric-mean and median relMSE, the mean PSNR, and on how many images the result is worse than
 the noisy input. The rule it serves (docs/models/consistency.md): the ``k`` with the lowest sum
 over spp of geometric-mean relMSE among those whose mean PSNR is nowhere below the model's
@@ -16,7 +17,7 @@ import torch
 from mcdenoise.eval.images import collect_images
 from mcdenoise.eval.methods import Inputs, ModelMethod
 from mcdenoise.eval.metrics import psnr, relmse
-from mcdenoise.models.consistency import consistency_clamp
+from mcdenoise.models.consistency import consistency_clamp, pixel_consistency_clamp
 from mcdenoise.models.weights import load_denoiser
 
 
@@ -43,15 +44,16 @@ def main() -> None:
             mu = x.guides["radiance"]
             r_noisy, p_noisy = relmse(mu, ref), psnr(mu, ref)
             for meth in methods:
-                if meth.model.input_kind != "samples":
-                    raise SystemExit(f"{meth.name}: the clamp needs per-sample inputs")
                 batch = meth.prepare(x)
                 meth.model.config.consistency = None  # the model's own output, then each k on it
                 out = torch.from_numpy(meth.run(batch))[None]
                 r = res.setdefault(meth.name, {})
                 r.setdefault("none", []).append((relmse(out[0].numpy(), ref), psnr(out[0].numpy(), ref), r_noisy, p_noisy))
                 for k in a.ks:
-                    c = consistency_clamp(out, batch["radiance"], k)[0].numpy()
+                    if meth.model.input_kind == "samples":
+                        c = consistency_clamp(out, batch["radiance"], k)[0].numpy()
+                    else:  # what denoise and eval do after a pixel model: the k samples' statistics
+                        c = pixel_consistency_clamp(out[0].numpy(), mu, x.guides["radiance_variance"], spp, k)
                     r.setdefault(f"k {k:g}", []).append((relmse(c, ref), psnr(c, ref), r_noisy, p_noisy))
         for name, r in res.items():
             for key, v in r.items():

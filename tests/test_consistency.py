@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 
+from mcdenoise.infer.sources import from_arrays
 from mcdenoise.models import build_model, synthetic_batch
 from mcdenoise.models.consistency import PRIOR, WINDOW, consistency_clamp, sample_bounds
 from test_model_exposure import assert_sample_tiles_match_whole
@@ -130,3 +131,84 @@ def test_tiles_match_the_whole_image() -> None:
     torch.manual_seed(0)
     model = build_model("layer", "small", autoexposure=0.18, consistency=1.5).eval()
     assert_sample_tiles_match_whole(model, spp=3)
+
+
+def test_pixel_form_equals_the_sample_form() -> None:
+    """A pixel model's clamp (from the input's per-pixel mean and variance of the mean) and a sample
+    model's (from the samples) are one rule: catches the two paths drifting apart (a variance of
+    the samples where the variance of the mean is meant, other shrinkage weights)."""
+    from mcdenoise.data.stats import pixel_stats
+    from mcdenoise.models.consistency import pixel_consistency_clamp
+
+    x = _samples(s=6, seed=7).float()
+    out = torch.rand(1, 3, 9, 11) * 3
+    mean, var_mean = pixel_stats(x[0].numpy())
+    got = pixel_consistency_clamp(out[0].numpy(), mean, var_mean, 6, 2.0)
+    np.testing.assert_allclose(got, consistency_clamp(out, x, 2.0)[0].numpy(), rtol=1e-5, atol=1e-6)
+
+
+def _wskp_inputs(with_variance: bool):
+    from mcdenoise.data.stats import pixel_stats
+
+    g = np.random.default_rng(0)
+    s, h, w = 4, 24, 24
+    samples = (g.random((s, 3, h, w), dtype=np.float32) ** 4) * 3
+    mean, var_mean = pixel_stats(samples)
+    albedo = np.full((3, h, w), 0.5, np.float32)
+    normal = np.zeros((3, h, w), np.float32)
+    normal[2] = 1
+    depth = np.ones((1, h, w), np.float32)
+    feats = {"radiance_variance": var_mean} if with_variance else None
+    return from_arrays(mean, albedo=albedo, normal=normal, depth=depth, features=feats,
+                       samples={"radiance": samples} if with_variance else None), mean, var_mean
+
+
+def test_denoise_clamps_a_pixel_model_where_the_input_has_variances() -> None:
+    """Catches a pixel model's ``consistency`` ignored by ``denoise``, or applied without the
+    input's variance (a Blender file has none: there it must pass unchanged)."""
+    from mcdenoise.infer.run import denoise_inputs
+    from mcdenoise.models.consistency import pixel_consistency_clamp
+
+    torch.manual_seed(0)
+    model = build_model("wskp", "small", autoexposure=0.18).eval()
+    inp, mean, var_mean = _wskp_inputs(True)
+    raw, _ = denoise_inputs(inp, model, device="cpu", tile=None, progress=False)
+    model.config.consistency = 1.0
+    inp, _, _ = _wskp_inputs(True)
+    clamped, _ = denoise_inputs(inp, model, device="cpu", tile=None, progress=False)
+    np.testing.assert_array_equal(clamped, pixel_consistency_clamp(raw, mean, var_mean, 4, 1.0))
+    assert not np.array_equal(clamped, raw)
+    inp, _, _ = _wskp_inputs(False)
+    alone, _ = denoise_inputs(inp, model, device="cpu", tile=None, progress=False)
+    np.testing.assert_array_equal(alone, raw)
+
+
+def test_eval_clamps_a_pixel_model_with_the_k_samples_statistics(tmp_path) -> None:
+    """Catches ``eval`` scoring a pixel model without its ``consistency`` (or with the statistics
+    of every stored sample instead of the k it evaluates): the table would not be what ``denoise``
+    gives on the same k samples."""
+    from mcdenoise.data.format import ImageFolder, ImageMeta
+    from mcdenoise.data.stats import pixel_stats
+    from mcdenoise.data.writer import write_image
+    from mcdenoise.eval.methods import Inputs, ModelMethod
+    from mcdenoise.models.consistency import pixel_consistency_clamp
+
+    g = np.random.default_rng(1)
+    s, h, w = 8, 16, 16
+    chans = ["radiance", "albedo", "normal", "depth"]
+    normal = np.zeros((s, 3, h, w), np.float32)
+    normal[:, 2] = 1
+    samples = {"radiance": (g.random((s, 3, h, w), dtype=np.float32) ** 4) * 3,
+               "albedo": np.full((s, 3, h, w), 0.5, np.float32), "normal": normal,
+               "depth": np.ones((s, 1, h, w), np.float32)}
+    write_image(tmp_path / "im", meta=ImageMeta(width=w, height=h, spp=s, channels=chans), samples=samples)
+    torch.manual_seed(0)
+    model = build_model("wskp", "small", autoexposure=0.18, consistency=1.0).eval()
+    method = ModelMethod("wskp", model, {"name": "wskp"}, "cpu")
+    x = Inputs(ImageFolder(tmp_path / "im"), 4)
+    got = method.run(method.prepare(x))
+    model.config.consistency = None
+    raw = method.run(method.prepare(x))
+    mean, var_mean = pixel_stats(samples["radiance"][:4])
+    np.testing.assert_allclose(got, pixel_consistency_clamp(raw, mean, var_mean, 4, 1.0), rtol=1e-6, atol=1e-7)
+    assert not np.allclose(got, raw)

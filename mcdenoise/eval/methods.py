@@ -201,10 +201,13 @@ class ModelMethod(Method):
         batch = {k: torch.from_numpy(np.ascontiguousarray(v))[None].to(self.device) for k, v in arrays.items()}
         if m.input_kind == "samples":
             batch["scene_features"] = torch.from_numpy(x.folder.meta.scene_feature_vector())[None].to(self.device)
+        # A pixel model's consistency clamp reads the same k samples' statistics (denoise's rule).
+        self._stats = (x.guides["radiance"], x.guides.get("radiance_variance"), x.k)
         if self.device.type == "cuda":
             torch.cuda.synchronize(self.device)  # the copies are not the model's time
         return batch
 
     def run(self, prepared: dict[str, torch.Tensor]) -> np.ndarray:
         with torch.inference_mode():
-            return _to_numpy(self.model(prepared)[0])
+            out = _to_numpy(self.model(prepared)[0])
+        return self.model.pixel_consistency(out, *self._stats)

@@ -167,6 +167,11 @@ def denoise_inputs(inputs: Inputs, model: Denoiser, *, device: torch.device | st
                         leave=False)
 
     out = run_tiled(model, read, plan, progress=bar)
+    if kind == "pixels" and getattr(model.config, "consistency", None) is not None:
+        # On the whole image, after tiling (its 5x5 box would otherwise need the tiles' overlap).
+        # The variance of the mean in noisy.exr is over every stored sample: the image folder's spp.
+        n = inputs.samples.spp if inputs.samples is not None else 0
+        out = model.pixel_consistency(out, inputs.pixels.get("radiance"), inputs.pixels.get("radiance_variance"), n)
     inputs.warn_nonfinite()
     return out, RunInfo(plan, device, names, spp)
 

@@ -56,6 +56,17 @@ class Denoiser(nn.Module):
         """The radiance the autoexposure is measured on: ``(B, 3, H, W)`` or ``(B, S, 3, H, W)``."""
         return batch["radiance"]
 
+    def pixel_consistency(self, out: Any, mean: Any, var_mean: Any, n: int) -> Any:
+        """A pixel model's whole-image output ``(3, H, W)`` (numpy) clamped to its configuration's
+        ``consistency`` around the input's per-pixel ``mean`` and variance of the mean over ``n``
+        samples (:func:`mcdenoise.models.consistency.pixel_consistency_clamp`); ``out`` unchanged
+        for a sample model (which clamps in its forward), without a ``consistency`` or a variance."""
+        if self.input_kind != "pixels":
+            return out
+        from mcdenoise.models.consistency import pixel_consistency_clamp
+
+        return pixel_consistency_clamp(out, mean, var_mean, n, getattr(self.config, "consistency", None))
+
     def conv_trunks(self) -> list[str]:
         """Dotted names of the submodules that may run in bfloat16 and channels_last at inference
         (:func:`mcdenoise.models.inference.prepare_inference` with ``precision="bfloat16"``).

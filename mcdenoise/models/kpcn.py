@@ -40,6 +40,7 @@ from torch import nn
 from mcdenoise.data.channels import variance_name
 from mcdenoise.models.base import Denoiser, register_model
 from mcdenoise.models.emitters import as_reflectance, emitter_mask, fill_emitters, pass_through
+from mcdenoise.models.consistency import check_consistency
 from mcdenoise.models.exposure import check_key, scale_batch, unscale
 from mcdenoise.models.kpcn_features import FEATURES_PER_BRANCH, kpcn_features, window_variance
 from mcdenoise.ops.gather import gather, gather_rows
@@ -84,6 +85,11 @@ class KPCNConfig:
     """Scale each image (crop in training) so its block-luminance geometric mean is this key
     before the network, and back after it (:mod:`mcdenoise.models.exposure`): the output no longer
     depends on the input's absolute brightness. None: the network sees the radiance as given."""
+    consistency: float | None = None
+    """Clamp each output pixel to this many (shrunk) standard errors around the input's pixel mean,
+    where the input has per-pixel variances (:func:`mcdenoise.models.consistency.pixel_consistency_clamp`,
+    applied by ``denoise`` and ``eval`` after the model; not in the paper). Set after training, on
+    held-out images; None: no clamp."""
 
     def feature_channels(self) -> tuple[str, str, str]:
         """Names of the (albedo, normal, depth) buffers the features read."""
@@ -204,6 +210,7 @@ class KPCN(Denoiser):
         if not config.depth_scale > 0:
             raise ValueError(f"KPCN: depth_scale must be > 0, got {config.depth_scale}")
         check_key("KPCN", config.autoexposure)
+        check_consistency("KPCN", config.consistency)
         config.feature_channels()  # refuses an unknown feature_hit now, not at the first batch
         if config.variance not in ("input", "window") or config.variance_window < 1 or config.variance_window % 2 == 0:
             raise ValueError(f"KPCN: variance must be 'input' or 'window' with an odd variance_window, got {config}")

@@ -33,6 +33,7 @@ from torch import nn
 
 from mcdenoise.models.base import Denoiser, register_model
 from mcdenoise.models.emitters import as_reflectance, emitter_mask, fill_emitters, pass_through
+from mcdenoise.models.consistency import check_consistency
 from mcdenoise.models.exposure import check_key, scale_batch, unscale
 from mcdenoise.ops.importance import fused_importance_filter
 from mcdenoise.ops.temporal import temporal_accumulate
@@ -189,6 +190,11 @@ class WSKPConfig:
     """Key of the image-level autoexposure (:mod:`mcdenoise.models.exposure`; not in the paper):
     the radiance is scaled to it before the network and back after, so the output follows
     exposure exactly. None: the network sees the radiance as given."""
+    consistency: float | None = None
+    """Clamp each output pixel to this many (shrunk) standard errors around the input's pixel mean,
+    where the input has per-pixel variances (:func:`mcdenoise.models.consistency.pixel_consistency_clamp`,
+    applied by ``denoise`` and ``eval`` after the model; not in the paper). Set after training, on
+    held-out images; None: no clamp."""
 
 
 class WSKP(Denoiser):
@@ -201,6 +207,7 @@ class WSKP(Denoiser):
         if config.blocks < 1 or not config.kernel_sizes:
             raise ValueError(f"WSKP: need blocks >= 1 and at least one kernel size, got {config}")
         check_key("WSKP", config.autoexposure)
+        check_consistency("WSKP", config.consistency)
         n = len(config.kernel_sizes)
         chans = [INPUT_CHANNELS] + [config.channels] * (config.blocks - 1) + [2 * n]
         # The last block outputs logits (importance and fusion), so no ReLU there.
