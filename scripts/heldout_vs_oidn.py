@@ -53,17 +53,21 @@ for spp in (4, 8, 16):
     R = {m: [] for m in rows}; D = {m: [] for m in rows}
     for f in folders:
         im = ImageFolder(f)
+        # Depth and the diffuse/specular split where the image has them (a kernel-model
+        # candidate, combine ens_kpcn, reads them), as scripts/blend_probe.py passes them.
+        names = ["radiance", "albedo", "normal"] + [c for c in ("depth", "diffuse", "specular") if c in im.meta.channels]
         if im.samples is None:
             if im.meta.spp != spp: continue
-            px = im.read_noisy(["radiance", "albedo", "normal"])
+            px = im.read_noisy(names)
         else:
-            smp = im.samples.read(["radiance", "albedo", "normal"], samples=list(range(spp)))
+            smp = im.samples.read(names, samples=list(range(spp)))
             px = {k: v.mean(axis=0) for k, v in smp.items()}
         ref = im.read_reference(["radiance"])["radiance"]
         o = oidn_denoise(px["radiance"], px["albedo"], px["normal"], threads=2)
         r0, p0 = relmse(o, ref), psnr(o, ref)
         for m in models:
-            out = np.asarray(mcdenoise.denoise(px["radiance"], px["albedo"], px["normal"], model=m))
+            out = np.asarray(mcdenoise.denoise(px["radiance"], px["albedo"], px["normal"], depth=px.get("depth"),
+                                               features={c: px[c] for c in ("diffuse", "specular") if c in px}, model=m))
             R[m].append(relmse(out, ref) / r0); D[m].append(psnr(out, ref) - p0)
             for rad in args.emitter_oidn:
                 ruled = np.where(_near_emitter(px["albedo"], rad)[None], o, out)
