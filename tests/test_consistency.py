@@ -172,15 +172,18 @@ def test_denoise_clamps_a_pixel_model_where_the_input_has_variances() -> None:
     torch.manual_seed(0)
     model = build_model("wskp", "small", autoexposure=0.18).eval()
     inp, mean, var_mean = _wskp_inputs(True)
-    raw, _ = denoise_inputs(inp, model, device="cpu", tile=None, progress=False)
+    raw, info = denoise_inputs(inp, model, device="cpu", tile=None, progress=False)
+    assert info.consistency == ""
     model.config.consistency = 1.0
     inp, _, _ = _wskp_inputs(True)
-    clamped, _ = denoise_inputs(inp, model, device="cpu", tile=None, progress=False)
+    clamped, info = denoise_inputs(inp, model, device="cpu", tile=None, progress=False)
     np.testing.assert_array_equal(clamped, pixel_consistency_clamp(raw, mean, var_mean, 4, 1.0))
     assert not np.array_equal(clamped, raw)
+    assert info.consistency.startswith("each pixel within 1 standard errors")
     inp, _, _ = _wskp_inputs(False)
-    alone, _ = denoise_inputs(inp, model, device="cpu", tile=None, progress=False)
+    alone, info = denoise_inputs(inp, model, device="cpu", tile=None, progress=False)
     np.testing.assert_array_equal(alone, raw)
+    assert info.consistency.startswith("not applied")  # the user is told, not left to guess
 
 
 def test_eval_clamps_a_pixel_model_with_the_k_samples_statistics(tmp_path) -> None:

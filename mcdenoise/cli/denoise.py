@@ -177,6 +177,8 @@ def _denoise(args: argparse.Namespace, src: Path, tile: int | str, budget: int) 
     print(f"channels: {', '.join(info['channels'])} ({kind})")
     out, run = denoise_inputs(inputs, model, device=device, tile=tile, max_memory=budget)
     print(f"ran {describe_plan(run.plan)} on {run.device}")
+    if run.consistency:
+        print(f"consistency: {run.consistency}")
     attrs = {"mcdenoise_model": str(info["name"]), "mcdenoise_weights": str(info["weights"]),
              "mcdenoise_input": str(src)}
     targets = [args.output] + ([args.preview] if args.preview is not None else [])

@@ -126,6 +126,8 @@ class RunInfo:
     device: torch.device
     channels: list[str]
     spp: int
+    #: What the model's consistency clamp did (docs/models/consistency.md); "" for a model without one.
+    consistency: str = ""
 
 
 def denoise_inputs(inputs: Inputs, model: Denoiser, *, device: torch.device | str | None = None,
@@ -167,13 +169,18 @@ def denoise_inputs(inputs: Inputs, model: Denoiser, *, device: torch.device | st
                         leave=False)
 
     out = run_tiled(model, read, plan, progress=bar)
-    if kind == "pixels" and getattr(model.config, "consistency", None) is not None:
+    k = getattr(model.config, "consistency", None)
+    note = "" if k is None else f"each pixel within {k:g} standard errors of its own samples' mean"
+    if kind == "pixels" and k is not None:
         # On the whole image, after tiling (its 5x5 box would otherwise need the tiles' overlap).
         # The variance of the mean in noisy.exr is over every stored sample: the image folder's spp.
         n = inputs.samples.spp if inputs.samples is not None else 0
-        out = model.pixel_consistency(out, inputs.pixels.get("radiance"), inputs.pixels.get("radiance_variance"), n)
+        var = inputs.pixels.get("radiance_variance")
+        if var is None or n < 2:
+            note = f"not applied (consistency {k:g}): the input has no per-pixel variance of its samples"
+        out = model.pixel_consistency(out, inputs.pixels.get("radiance"), var, n)
     inputs.warn_nonfinite()
-    return out, RunInfo(plan, device, names, spp)
+    return out, RunInfo(plan, device, names, spp, note)
 
 
 def image_exposure(inputs: Inputs, model: Denoiser, names: list[str], device: torch.device) -> torch.Tensor | None:
