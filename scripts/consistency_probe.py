@@ -12,11 +12,14 @@ without the clamp.
 from __future__ import annotations
 
 import argparse
+
 import numpy as np
 import torch
+
 from mcdenoise.eval.images import collect_images
 from mcdenoise.eval.methods import Inputs, ModelMethod
 from mcdenoise.eval.metrics import psnr, relmse
+from mcdenoise.models import consistency
 from mcdenoise.models.consistency import consistency_clamp, pixel_consistency_clamp
 from mcdenoise.models.weights import load_denoiser
 
@@ -26,8 +29,12 @@ def main() -> None:
     ap.add_argument("roots", nargs="+")
     ap.add_argument("--models", nargs="+", required=True)
     ap.add_argument("--spp", nargs="+", type=int, default=[4, 8, 16])
-    ap.add_argument("--ks", nargs="+", type=float, default=[1.5, 2, 3, 4])
+    ap.add_argument("--ks", nargs="+", type=float, default=[1.5, 2, 2.5, 3, 4])
+    ap.add_argument("--prior", type=float, default=None,
+                    help="weight of the neighbourhood's variance in samples (default: the module's PRIOR; 0: none)")
     a = ap.parse_args()
+    if a.prior is not None:
+        consistency.PRIOR = a.prior  # read at each call: every bound below uses it
     # The val split of a dataset, every image of a folder of image folders (eval's own rule).
     images = [e.folder for e in collect_images(a.roots, split="val")[0]]
     methods = []

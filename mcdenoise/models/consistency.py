@@ -18,8 +18,11 @@ the light) has ``v = 0`` but is not noise-free; its neighbourhood's variance, we
 samples, says how far it may move. A firefly's own variance is large, so its bound is loose and
 the network removes it as before. With ``S = 1`` there is no variance: the output passes as it is.
 
-Plain PyTorch (it is its own reference); ``k`` is ``consistency`` in the SBMC and layer configs,
-chosen after training on our own held-out images (``scripts/consistency_probe.py``).
+Plain PyTorch (it is its own reference). ``k`` is ``consistency`` in the SBMC, layer, WSKP and KPCN
+configs, chosen after training on our own held-out images (``scripts/consistency_probe.py``). The
+sample models clamp in their forward (:func:`consistency_clamp`); a pixel model sees no samples,
+so ``denoise`` and ``eval`` clamp its output from the input's per-pixel statistics
+(:func:`pixel_consistency_clamp`).
 """
 
 from __future__ import annotations
@@ -31,7 +34,8 @@ import torch.nn.functional as F
 __all__ = ["PRIOR", "WINDOW", "bounds", "sample_bounds", "consistency_clamp", "pixel_consistency_clamp", "check_consistency"]
 
 #: Weight of the neighbourhood's variance, in samples (chosen on held-out images: 0 left pixels
-#: whose few samples agree stuck at their mean, and cost 4-6 dB of PSNR at 4-8 spp).
+#: whose few samples agree stuck at their mean, and cost 2.4-5.4 dB of PSNR at 4-8 spp:
+#: ``scripts/consistency_probe.py ... --prior 0``).
 PRIOR = 2.0
 #: Side of the box the neighbourhood's variance is averaged over.
 WINDOW = 5
@@ -80,7 +84,9 @@ def pixel_consistency_clamp(out: np.ndarray, mean: np.ndarray, var_mean: np.ndar
     Unchanged for ``k`` None, no variance (a Blender file, a plain colour EXR) or ``n < 2``."""
     if k is None or var_mean is None or n < 2:
         return out
-    t = lambda a: torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32))[None]  # noqa: E731
+    def t(a: np.ndarray) -> torch.Tensor:
+        return torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32))[None]
+
     lo, hi = bounds(t(mean), t(var_mean), n, k)
     return torch.minimum(torch.maximum(t(out), lo), hi)[0].numpy()
 

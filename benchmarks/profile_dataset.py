@@ -1,0 +1,55 @@
+"""Where `mcdenoise dataset`'s time goes: cProfile of one procedural dataset render, fresh kernel cache.
+
+    .venv/bin/python benchmarks/profile_dataset.py --world rich --views 16     # 2 scenes, 128x128, 16 spp
+
+Prints the wall and CPU time, then the functions by cumulative and by own time. The own time of
+a function that calls Dr.Jit includes the Dr.Jit work (nanobind functions are not profiled as
+built-ins), and ``numpy.asarray`` on a Dr.Jit array waits for the kernel it reads. The figures of
+docs/DATASETS.md "Where a 128x128 image's time goes now" came from this script.
+"""
+
+from __future__ import annotations
+
+import argparse
+import cProfile
+import os
+import pstats
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--world", default="rich")
+    ap.add_argument("--views", type=int, default=16)
+    ap.add_argument("--count", type=int, default=2)
+    ap.add_argument("--size", type=int, default=128)
+    ap.add_argument("--spp", type=int, default=16)
+    ap.add_argument("--seed", type=int, default=7)
+    ap.add_argument("--top", type=int, default=40)
+    a = ap.parse_args()
+    tmp = tempfile.mkdtemp(prefix="profile_dataset_")
+    os.environ["DRJIT_CACHE_DIR"] = str(Path(tmp) / "drjit-cache")  # before the first Dr.Jit import
+
+    from mcdenoise.render.procedural_dataset import DatasetConfig, render_dataset
+
+    cfg = DatasetConfig(count=a.count, seed=a.seed, spp=a.spp, ref_spp=0, width=a.size, height=a.size,
+                        objects=(10, 40), world=a.world, max_depth=8, views=a.views)
+    prof = cProfile.Profile()
+    t0, c0 = time.perf_counter(), time.process_time()
+    prof.enable()
+    render_dataset(Path(tmp) / "ds", cfg, progress=False)
+    prof.disable()
+    print(f"wall {time.perf_counter() - t0:.1f} s, CPU {time.process_time() - c0:.1f} s, "
+          f"{a.count} scene(s) x {a.views} view(s)")
+    stats = pstats.Stats(prof)
+    stats.sort_stats("cumulative").print_stats(a.top)
+    stats.sort_stats("tottime").print_stats(a.top)
+
+
+if __name__ == "__main__":
+    main()
