@@ -1,0 +1,110 @@
+#!/usr/bin/env bash
+# Campaign 13 on a lent GPU machine (one H100/H200, 16 cores, no network, no Mitsuba installed):
+# render fresh per-sample training data with Mitsuba's cuda_ad_rgb variant, then train two
+# ~1M-parameter layer-embedding models on it side by side, and pack the run folders into $OUT.
+#
+#   bash scripts/gpu_campaign.sh            # on the GPU machine, from the repository root
+#
+# Needs .gpu/site_mi.tar.xz and .gpu/site_dr.tar.xz (made by scripts/gpu_site.sh: the cp312 wheels
+# of mitsuba 3.9.1, drjit 1.5.0 and OpenEXR 3.5.3, unpacked and slimmed to the RGB variants so
+# that they travel within the device tool's 64 MiB). Everything is time-boxed: DEADLINE seconds
+# after the start the run folders are packed, whatever state the training is in (checkpoints
+# every 100 steps; the schedule is set from a measured step time so a run normally finishes).
+# Nothing here is needed to use or test mcdenoise; it is the recipe of campaign 13's weights.
+set -uo pipefail
+cd "$(dirname "$0")/.."
+OUT=${OUT:-/tmp/c13_out}; mkdir -p "$OUT"
+DEADLINE=${DEADLINE:-540}   # s from start: runs are packed by then
+RENDER_S=${RENDER_S:-150}   # s of rendering (shards are killed then; finished images are kept)
+SHARDS=${SHARDS:-12}        # parallel render processes (2/3 detailed world, 1/3 rich)
+SPP=${SPP:-12}
+VARIANT=${VARIANT:-cuda_ad_rgb}; DEVICE=${DEVICE:-cuda}; PY=${PY:-python3}
+BATCH=${BATCH:-16}; CROP=${CROP:-128}; CALIB=${CALIB:-40}; WORKERS=${WORKERS:-6}
+COUNT_D=${COUNT_D:-240}; COUNT_R=${COUNT_R:-120}   # scenes (x4 views), 25 MB per image at 12 spp
+T0=$(date +%s); el() { echo $(( $(date +%s) - T0 )); }
+log() { echo "[$(el)s] $*"; }
+
+SITE=/tmp/site; mkdir -p $SITE
+if [ -z "${SKIP_SITE:-}" ]; then for f in .gpu/site_*.tar.xz; do tar -C $SITE -xJf "$f" & done; wait; fi
+export PYTHONPATH=$SITE:$PWD PYTHONUNBUFFERED=1
+export LD_LIBRARY_PATH=/usr/local/nvidia/lib64:/usr/local/nvidia/lib:${LD_LIBRARY_PATH:-}
+MC="$PY -m mcdenoise.cli.main"
+nvidia-smi -L 2>/dev/null; $PY --version; nproc
+(ldconfig -p | grep -iE "nvoptix|rtcore"; ls /usr/local/nvidia/lib64 2>/dev/null | grep -iE "optix|rtcore") | head
+ROOT=/tmp/c13; avail=$(df --output=avail -BG /dev/shm | tail -1 | tr -dc 0-9)
+[ "${avail:-0}" -ge 40 ] && ROOT=/dev/shm/c13
+mkdir -p $ROOT/logs; df -h $ROOT | tail -1
+log "site unpacked; data in $ROOT"
+
+$PY - $VARIANT <<'EOF' || { log "Mitsuba $VARIANT does not run here"; exit 3; }
+import sys, time, mitsuba as mi
+t = time.time(); mi.set_variant(sys.argv[1])
+img = mi.render(mi.load_dict(mi.cornell_box()), spp=16)
+print("cornell box on", sys.argv[1], img.shape, f"{time.time() - t:.1f} s")
+EOF
+log "mitsuba ok"
+
+# Render shards, each its own dataset folder (shard i/n of one recipe; their union is the set).
+DS="--spp $SPP --ref-spp 1024 --size 128 --variant $VARIANT --max-depth 8 --objects 10-40 --views 4 --split 0.95,0.05,0 --max-gb 60 --no-progress"
+ND=$(( SHARDS * 2 / 3 )); NR=$(( SHARDS - ND )); ROOTS=()
+for i in $(seq 0 $((ND - 1))); do
+  ROOTS+=($ROOT/det_$i)
+  timeout -s TERM $RENDER_S $MC dataset --out $ROOT/det_$i --count $COUNT_D --world detailed --seed 1301 --shard $i/$ND $DS > $ROOT/logs/render_det_$i.log 2>&1 &
+done
+for i in $(seq 0 $((NR - 1))); do
+  ROOTS+=($ROOT/rich_$i)
+  timeout -s TERM $RENDER_S $MC dataset --out $ROOT/rich_$i --count $COUNT_R --world rich --seed 1302 --shard $i/$NR $DS > $ROOT/logs/render_rich_$i.log 2>&1 &
+done
+sleep 45
+n=$(ls -d $ROOT/*/proc_* 2>/dev/null | wc -l); log "after 45 s: $n scenes finished"
+if [ "$n" -eq 0 ]; then tail -20 $ROOT/logs/render_det_0.log; fi
+wait
+for r in "${ROOTS[@]}"; do $MC dataset --merge --out $r > /dev/null 2>&1 || log "merge failed: $r"; done
+GOOD=(); for r in "${ROOTS[@]}"; do [ -s $r/manifest.json ] && GOOD+=($r); done
+nimg=$(ls -d $ROOT/*/proc_*/view_* 2>/dev/null | wc -l)
+log "rendered: $nimg images in ${#GOOD[@]} shards; $(du -sh $ROOT | cut -f1)"
+tail -3 $ROOT/logs/render_det_0.log
+[ ${#GOOD[@]} -gt 0 ] || { tar -czf $OUT/logs.tgz -C $ROOT logs; exit 4; }
+DATA=$(IFS=,; echo "${GOOD[*]}")
+
+OVA='{"embed_width": 32, "reducer_layers": 3, "context_width": 64, "unet_encoder": [[32], [64], [96], [128]], "unet_bottleneck": [128], "unet_decoder": [[128], [96], [64], [32]], "partitioner_widths": [32, 16], "kernel_widths": [64, 64], "kernel_size": 17, "autoexposure": 0.18}'
+OVT='{"autoexposure": 0.18}'
+COMMON="--data $DATA --val-data ${GOOD[0]} --batch $BATCH --crop $CROP --loss tonemapped_l2 --lr 1e-3 --workers $WORKERS --threads 2 --val-every 0 --val-images 8 --checkpoint-every 100 --keep-every 100000 --spp 2 $SPP --amp bf16 --device $DEVICE --no-progress"
+R=$ROOT/runs; mkdir -p $R
+train_both() {  # $1 = steps; extra args after
+  local steps=$1; shift
+  $MC train --model layer --model-overrides "$OVA" --out $R/layer_m --steps $steps $COMMON "$@" >> $ROOT/logs/train_m.log 2>&1 &
+  $MC train --model layer_optimized --preset paper_timed --model-overrides "$OVT" --out $R/layer_t --steps $steps $COMMON "$@" >> $ROOT/logs/train_t.log 2>&1 &
+  wait
+}
+(nvidia-smi --query-gpu=name,utilization.gpu,memory.used --format=csv -l 20 > $ROOT/logs/gpu.txt 2>&1 &)
+train_both $CALIB
+tail -n 2 $ROOT/logs/train_m.log $ROOT/logs/train_t.log
+steps_for() {  # run folder -> total steps that fit before the deadline
+  $PY - "$1" $CALIB "$(( DEADLINE - $(el) - 45 ))" <<'EOF'
+import csv, statistics, sys
+rows = [r for r in csv.DictReader(open(sys.argv[1] + "/metrics.csv")) if r["s_per_step"] and int(r["step"]) > min(10, int(sys.argv[2]) // 2)]
+s = statistics.median(float(r["s_per_step"]) for r in rows)
+c = int(sys.argv[2])
+print(max(c + 1, c + int(max(0, int(sys.argv[3])) / (s * 1.25))), file=sys.stdout)
+print(f"{sys.argv[1]}: {s:.3f} s/step", file=sys.stderr)
+EOF
+}
+SM=$(steps_for $R/layer_m); ST=$(steps_for $R/layer_t)
+log "resuming: layer_m to $SM steps, layer_t to $ST steps"
+LEFT=$(( DEADLINE - $(el) - 15 ))
+timeout -s TERM $LEFT $MC train --model layer --model-overrides "$OVA" --out $R/layer_m --steps $SM $COMMON --resume >> $ROOT/logs/train_m.log 2>&1 &
+timeout -s TERM $LEFT $MC train --model layer_optimized --preset paper_timed --model-overrides "$OVT" --out $R/layer_t --steps $ST $COMMON --resume >> $ROOT/logs/train_t.log 2>&1 &
+wait
+log "training done"
+tail -n 3 $ROOT/logs/train_m.log $ROOT/logs/train_t.log
+for r in "${GOOD[@]}"; do mkdir -p $ROOT/logs/ds/$(basename $r); cp $r/dataset.json $r/manifest.json $ROOT/logs/ds/$(basename $r)/; done
+tar -czf $OUT/logs.tgz -C $ROOT logs
+# Two files per run (each must stay under the device tool's 16 MB): the run without its
+# checkpoints, and its newest checkpoint (a killed run's weights are there).
+for m in layer_m layer_t; do
+  tar -czf $OUT/$m.tgz -C $R --exclude=checkpoints $m
+  ck=$(ls -d $R/$m/checkpoints/step_* 2>/dev/null | tail -n 1)
+  [ -n "$ck" ] && tar -czf $OUT/${m}_ckpt.tgz -C $R $m/checkpoints/$(basename $ck)
+done
+ls -la $OUT; log "packed"
