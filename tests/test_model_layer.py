@@ -209,6 +209,38 @@ def test_compositing_gradients_are_finite_where_nothing_lands() -> None:
     assert torch.isfinite(logits.grad).all() and torch.isfinite(l_rad.grad).all()
 
 
+@pytest.mark.parametrize("compositing", ["alpha", "weighted"])
+def test_compositing_gradients_survive_a_nearly_empty_layer(compositing: str) -> None:
+    """Catches: folding each layer's sums by the live normalising sum. Its backward divides the
+    folded value (an HDR mean, ~1e3) by the sum again; where a saturated partitioner leaves a layer
+    1e-36 of the weight that overflows float32 and meets a zero kernel weight: 0 * inf = NaN
+    (campaign 13's layer_optimized on a GPU had NaN gradients from step 10 on). float32 gradients
+    must be finite and match float64's on the same inputs (measured 4e-6 apart; bound 1e-3)."""
+    torch.manual_seed(0)
+    model = build_model("layer", "small", compositing=compositing)
+    b, nl, k, h, w = 1, 2, model.config.kernel_size, 9, 10
+    g = torch.Generator().manual_seed(6)
+    logits = torch.randn(b, nl, k * k, h, w, generator=g, dtype=torch.float64)
+    l_rad, l_w, _ = _layer_sums(b, nl, h, w, torch.float64)
+    share = torch.ones(1, nl, 1, h, w, dtype=torch.float64)
+    share[:, 1, :, :, ::2] = 1e-36  # layer 1 nearly empty in every other column
+    l_rad, l_w = l_rad * share * 1e3, l_w * share
+    l_n = l_w.flip(1).cumsum(1).flip(1)
+    sums = [t.float().double() for t in (l_rad, l_w, l_n)]  # the same inputs in both precisions
+
+    def grads(dtype: torch.dtype) -> list[torch.Tensor]:
+        ins = [t.to(dtype).requires_grad_(True) for t in sums]
+        lg = logits.to(dtype).clone().requires_grad_(True)
+        out = model.to(dtype)._filter(lg, *ins)
+        (out * torch.linspace(0.5, 1.5, out.numel(), dtype=dtype).reshape(out.shape)).sum().backward()
+        # Eq. 6 never reads l_n: no gradient there.
+        return [t.grad.double() for t in ins + [lg] if t.grad is not None]
+
+    for got, want in zip(grads(torch.float32), grads(torch.float64)):
+        assert torch.isfinite(got).all()
+        assert rel_diff(got, want) <= 1e-3
+
+
 def test_optimized_uses_three_levels_and_small_kernels() -> None:
     model = build_model("layer_optimized", "paper")
     assert model.config.kernel_size == 5 and model.config.levels == 3

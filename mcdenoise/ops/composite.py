@@ -71,9 +71,15 @@ def _folded_values(l_rad: Tensor, l_w: Tensor, l_n: Tensor, weighted: bool) -> t
     becomes the filtered denominator; ``-inf`` log where the sum is 0."""
     den = l_w if weighted else l_n
     pos = den > 0
-    safe = torch.where(pos, den, torch.ones_like(den))
+    # The fold divides by a constant (detached) copy of the sum and the kernel weight multiplies it
+    # back, so every filtered sum is linear in (l_rad, l_w, l_n) with the kernel as coefficient and
+    # autograd gets that gradient directly. Dividing by the live sum gave the same values but made
+    # autograd cancel two ~1/den terms; below den ~ 1e-19 (float32) each overflowed and inf - inf
+    # gave NaN gradients (campaign 13: layer_optimized on a GPU, from step 10 on). The indicator
+    # channel is den / const (1 where den > 0) so that the filtered denominator keeps its gradient.
+    safe = torch.where(pos, den, torch.ones_like(den)).detach()
     parts = [l_rad / safe] if weighted else [l_rad / safe, l_w / safe]
-    vals = torch.cat(parts + [pos.to(den.dtype)], dim=2)
+    vals = torch.cat(parts + [den / safe], dim=2)
     return vals, torch.log(safe).masked_fill(~pos, float("-inf"))
 
 
