@@ -86,6 +86,29 @@ def test_shipped_weights_by_name_match_the_run(run: Path, tmp_path: Path, monkey
     assert json.loads(c2.read_text())["not_for"] == {"blender": "measured"}
 
 
+def test_ship_records_a_preset_only_when_the_run_equals_it(run: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Bug caught: ``ship --preset`` naming weights after a preset whose architecture is not the
+    run's (a card and file name that lie about the model), or losing the run's own command. The run
+    trained ``small`` with channels=6; a preset with channels=6 may name it, one with 5 may not."""
+    import dataclasses
+
+    import mcdenoise.models.registry as reg
+
+    monkeypatch.setattr(W, "SHIPPED_DIR", tmp_path)
+    entry = reg.MODELS["wskp"]
+    monkeypatch.setitem(entry.presets, "six", lambda: dataclasses.replace(entry.presets["small"](), channels=6))
+    monkeypatch.setitem(entry.presets, "five", lambda: dataclasses.replace(entry.presets["small"](), channels=5))
+    with pytest.raises(W.WeightsError, match="differs from preset 'five'.*channels") as e:
+        ship(run, out_dir=tmp_path, preset="five")
+    assert "\n" not in str(e.value) and not list(tmp_path.glob("*.safetensors"))
+    w, c = ship(run, out_dir=tmp_path, preset="six")
+    card = json.loads(c.read_text())
+    assert w.name == "wskp-six.safetensors" and card["preset"] == "six"
+    assert "'small'" in card["training"]["preset_note"] and "--model wskp" in card["training"]["command"]
+    model, info = W.load_denoiser("wskp-six")
+    assert info["preset"] == "six" and model.config.channels == 6
+
+
 def test_missing_and_mismatched_weights_are_one_line_errors(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """Bug caught: a KeyError/RuntimeError traceback (or a silent partial load) instead of an error
     that names the file."""

@@ -34,6 +34,7 @@ from mcdenoise.models.layer_config import (  # noqa: F401  (LAYER_CHANNELS, Laye
     _paper_layer,
     _paper_optimized,
     _paper_timed_optimized,
+    _medium_layer,
     _small_layer,
     _small_optimized,
 )
@@ -349,7 +350,7 @@ _PAPER = "Munkberg and Hasselgren, Neural Denoising with Layer Embeddings, EGSR 
 register_model(
     "layer",
     config_cls=LayerConfig,
-    presets={"paper": _paper_layer, "small": _small_layer},
+    presets={"paper": _paper_layer, "medium": _medium_layer, "small": _small_layer},
     paper=_PAPER + ", Sec. 3 / Appendix A-B",
     description="samples partitioned into 2 layers, 17x17 splat kernel per layer, front-to-back alpha compositing",
 )(LayerDenoiser)

@@ -132,3 +132,23 @@ def _small_optimized(**kw: object) -> LayerConfig:
     # Three U-Net levels so that every pyramid level has decoder features at its resolution.
     common.update(unet_encoder=((8,), (16,), (24,)), unet_bottleneck=(32,), unet_decoder=((24,), (16,), (16,)))
     return LayerConfig(**common, kernel_widths=(8,), kernel_size=5, hierarchical=True, **kw)  # type: ignore[arg-type]
+
+
+def _medium_layer(**kw: object) -> LayerConfig:
+    # Sized for a GPU campaign (campaign 13: ~1M parameters, 3000 steps of 16 128x128 crops on an
+    # H100 in 5 minutes): the paper's embedding width, reducer depth, partitioner and 17x17 kernels,
+    # with a 4-level U-Net one conv per level, 32-128 wide (the paper's 18M-parameter U-Net widths
+    # are unverified and far beyond what CPU inference can afford; docs/models/layer.md).
+    return LayerConfig(
+        embed_width=32,
+        reducer_layers=3,
+        context_width=64,
+        unet_encoder=((32,), (64,), (96,), (128,)),
+        unet_bottleneck=(128,),
+        unet_decoder=((128,), (96,), (64,), (32,)),
+        partitioner_widths=(32, 16),
+        kernel_widths=(64, 64),
+        kernel_size=17,
+        **kw,  # type: ignore[arg-type]
+    )
+

@@ -26,7 +26,7 @@ from typing import Any
 from mcdenoise.errors import McDenoiseError
 from mcdenoise.io.atomic import atomic_file
 from mcdenoise.io.run_folder import CONFIG_FILE, RESULT_FILE, WEIGHTS_FILE, checkpoint_run
-from mcdenoise.models.weights import SHIPPED_DIR, WeightsError, load_denoiser
+from mcdenoise.models.weights import SHIPPED_DIR, WeightsError, load_denoiser, model_from_config
 
 __all__ = ["dataset_command", "train_command", "model_card", "card_markdown", "ship"]
 
@@ -263,12 +263,32 @@ def card_markdown(card: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+#: Configuration fields set on weights after training (``scripts/reconfigure_weights.py``), which a
+#: preset therefore does not fix.
+POST_TRAINING_FIELDS = ("autoexposure", "consistency")
+
+
+def _check_preset(name: str, preset: str, run_config: dict[str, Any] | None, run: Path) -> None:
+    """Refuse (one line) to record ``preset`` for a run whose architecture differs from it."""
+    import dataclasses
+
+    # Tuples become lists, as a run's config.json reads back.
+    want = json.loads(json.dumps(dataclasses.asdict(model_from_config(name, preset).config), default=list))
+    got = dict(run_config or {})
+    diff = sorted(k for k in set(want) | set(got) if k not in POST_TRAINING_FIELDS and want.get(k) != got.get(k))
+    if diff:
+        raise WeightsError(f"{run}: its model configuration differs from preset {preset!r} of {name!r} in {', '.join(diff[:4])}")
+
+
 def ship(run_dir: str | Path, *, results_json: str | Path | None = None, out_dir: Path = SHIPPED_DIR,
-         force: bool = False, docs: str | Path | None = None, cpu_seconds: float | None = None) -> tuple[Path, Path]:
+         force: bool = False, docs: str | Path | None = None, cpu_seconds: float | None = None,
+         preset: str | None = None) -> tuple[Path, Path]:
     """Copy ``run_dir``'s final weights into ``out_dir`` with a model card. Returns (weights, card).
 
     With ``docs`` (e.g. docs/TRAINING.md), the card's commands and test figures also go into the
-    generated block ``shipped:<name>-<preset>`` of that file.
+    generated block ``shipped:<name>-<preset>`` of that file. ``preset`` records the weights under
+    another preset than the run's, for a run trained with ``--model-overrides`` that equal it (the
+    card's training command stays the run's own).
     """
     from safetensors.torch import save_file
 
@@ -288,7 +308,18 @@ def ship(run_dir: str | Path, *, results_json: str | Path | None = None, out_dir
             results = json.loads(Path(results_json).read_text())
         except (OSError, ValueError) as e:
             raise WeightsError(f"{results_json}: cannot read eval results ({e})") from None
+    if preset is not None and preset != info["preset"]:
+        from mcdenoise.train.config import read_config
+
+        _check_preset(info["name"], preset, read_config(run / CONFIG_FILE).get("model_config"), run)
+        trained_as = info["preset"]
+        info = {**info, "preset": preset}
+    else:
+        trained_as = None
     card = model_card(run, model, info, results)
+    if trained_as is not None:
+        card["training"]["preset_note"] = (f"trained as preset {trained_as!r} with --model-overrides that equal preset "
+                                           f"{preset!r} (which was added after the run)")
     if checkpoint is not None:
         card["training"]["checkpoint"] = info["step"]
         card["training"]["note"] = (f"weights of step {info['step']} of the {card['training']['steps']}-step run "
@@ -332,6 +363,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--docs", type=Path, default=Path("docs/TRAINING.md"),
                    help="Markdown file whose block shipped:<name>-<preset> gets the card (default docs/TRAINING.md)")
     p.add_argument("--cpu-seconds", type=float, help="CPU seconds the run took, when its result.json lacks them")
+    p.add_argument("--preset", help="record this preset instead of the run's (the run's --model-overrides must equal it)")
     a = p.parse_args(argv)
     try:
         if a.annotate:
@@ -341,7 +373,7 @@ def main(argv: list[str] | None = None) -> int:
             return 0
         if a.run is None:
             raise WeightsError("give a run folder (or --annotate NAME-PRESET --valscenes ...)")
-        w, c = ship(a.run, results_json=a.eval, force=a.force, docs=a.docs, cpu_seconds=a.cpu_seconds)
+        w, c = ship(a.run, results_json=a.eval, force=a.force, docs=a.docs, cpu_seconds=a.cpu_seconds, preset=a.preset)
         if a.valscenes is not None:
             annotate(w.stem, a.valscenes, out_dir=w.parent)
     except McDenoiseError as e:
