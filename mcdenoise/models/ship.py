@@ -229,8 +229,9 @@ def card_markdown(card: dict[str, Any]) -> str:
         wall += f" ({t['cpu_s'] / 60:.0f} CPU-min, loader workers included)"
     lines = [f"**{card['name']}** (`{card['preset']}` preset, {card['parameters']:,} parameters, inputs: "
              f"{', '.join(card['inputs'])}): {t['steps']} steps, {wall} on {t.get('device')} "
-             f"({t.get('threads') or 'default'} thread(s), {t.get('machine')}; the machine was shared, so wall time "
-             "overstates the compute).", "", "```"]
+             f"({t.get('threads') or 'default'} thread(s), {t.get('machine')}"
+             + ("; the machine was shared, so wall time overstates the compute" if str(t.get("device", "cpu")).startswith("cpu") else "")
+             + ").", "", "```"]
     if card["dataset"].get("command"):
         lines.append(card["dataset"]["command"])
     src = f"runs/{card['name']}" + (f"/checkpoints/step_{t['checkpoint']:08d}" if t.get("checkpoint") else "")
@@ -241,9 +242,12 @@ def card_markdown(card: dict[str, Any]) -> str:
         lines.append(test["command"])
         argv = shlex.split(test["command"])
         report = argv[argv.index("--out") + 1] if "--out" in argv else report
-    lines += [f"python -m mcdenoise.models.ship {src} --eval {report}/results.json --force", "```"]
+    preset = f" --preset {card['preset']}" if t.get("preset_note") else ""
+    lines += [f"python -m mcdenoise.models.ship {src}{preset} --eval {report}/results.json --force", "```"]
     if t.get("note"):
         lines += ["", f"Shipped: the {t['note']}."]
+    if t.get("preset_note"):
+        lines += ["", f"Preset: {t['preset_note']}."]
     data = ", ".join(test.get("data") or []) if isinstance(test.get("data"), list) else test.get("data")
     for subset, per_spp in (test.get("subsets") or {}).items():
         rows = sorted(per_spp.items(), key=lambda kv: int(kv[0]))
