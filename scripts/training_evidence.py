@@ -3,7 +3,8 @@ against the training CPU-hours and training megapixels that made it, one point p
 model card in git history (every version that carries a third-party validation block).
 
 Cumulative figures follow each card's chain of fine-tunes (``training.init``): CPU-seconds as the
-cards record them (loader workers included), *dataset* megapixels (images x views x pixels of
+cards record them (loader workers included), GPU-seconds for runs on a lent GPU (``training.gpu_s``;
+such versions are left off the CPU-hours plot), *dataset* megapixels (images x views x pixels of
 every dataset in the chain) and *seen* megapixels (steps x batch x crop^2 of every training run).
 
     python scripts/training_evidence.py --out docs/img/training_evidence.png --spp 8
@@ -41,7 +42,12 @@ def dataset_mp(cmd: str | None) -> float:
         return sum(dataset_mp(c) for c in cmd.split(" && "))
     size = _flag(cmd, "--size", 64.0)
     w, h = _flag(cmd, "--width", size), _flag(cmd, "--height", size)
-    return (_flag(cmd, "--count", 0.0) or 0.0) * (_flag(cmd, "--views", 1.0) or 1.0) * w * h / 1e6
+    count = _flag(cmd, "--count", 0.0) or 0.0
+    shard = re.search(r"--shard (\d+)/(\d+)", cmd)
+    if shard:  # scenes i, i + n, i + 2n... of the count
+        i, n = int(shard.group(1)), int(shard.group(2))
+        count = max(0, -(-(int(count) - i) // n))
+    return count * (_flag(cmd, "--views", 1.0) or 1.0) * w * h / 1e6
 
 
 def chain_dataset_mp(st: list[dict[str, Any]]) -> float:
@@ -50,12 +56,16 @@ def chain_dataset_mp(st: list[dict[str, Any]]) -> float:
     import re
 
     unique: dict[tuple[str, str], str] = {}
+    recorded = 0.0
     for s in st:
+        if s.get("images_mp") is not None:
+            recorded += float(s["images_mp"])
+            continue
         for c in (s["dataset"] or "").split(" && "):
             if c.strip():
                 key = tuple((re.search(rf"{f} (\S+)", c) or [None, ""])[1] for f in ("--out", "--seed"))
                 unique.setdefault(key, c)
-    return sum(dataset_mp(c) for c in unique.values())
+    return recorded + sum(dataset_mp(c) for c in unique.values())
 
 
 def seen_mp(cmd: str | None, steps: float | None = None) -> float:
@@ -71,15 +81,17 @@ def stages(card: dict[str, Any]) -> list[dict[str, Any]]:
     out = []
     ds = card.get("dataset")
     tr = card.get("training") or {}
+    # A dataset stopped at a deadline (campaign 13's GPU shards) records the images it holds.
+    images_mp = ds.get("images_mp") if isinstance(ds, dict) else None
     out.append({"dataset": ds.get("command") if isinstance(ds, dict) else ds, "train": tr.get("command"),
-                "cpu_s": tr.get("cpu_s"), "steps": tr.get("steps")})
+                "cpu_s": tr.get("cpu_s"), "gpu_s": tr.get("gpu_s"), "steps": tr.get("steps"), "images_mp": images_mp})
     init = tr.get("init")
     while isinstance(init, dict):
         if "training" in init:  # a whole earlier card's dataset + training block
             out += stages({"dataset": init.get("dataset"), "training": init["training"]})
             break
         out.append({"dataset": init.get("dataset"), "train": init.get("train"), "cpu_s": init.get("cpu_s"),
-                    "steps": None})
+                    "gpu_s": init.get("gpu_s"), "steps": None, "images_mp": None})
         init = init.get("init")
     return out
 
@@ -116,6 +128,7 @@ def points(spp: int) -> list[dict[str, Any]]:
             row = {
                 "model": card_path.stem, "commit": commit, "relmse": model, "oidn": oidn,
                 "cpu_h": sum(s["cpu_s"] or 0.0 for s in st) / 3600,
+                "gpu_h": sum(s.get("gpu_s") or 0.0 for s in st) / 3600,
                 "dataset_mp": chain_dataset_mp(st),
                 "seen_mp": sum(seen_mp(s["train"], s["steps"]) for s in st),
                 "stages": len(st),
@@ -136,11 +149,11 @@ def main() -> None:
     ap.add_argument("--out", default="docs/img/training_evidence.png")
     a = ap.parse_args()
     rows = points(a.spp)
-    print(f"| model | card version | stages | training CPU-h | dataset MP | seen MP | relMSE at {a.spp} spp | x OIDN high |")
-    print("|---|---|---:|---:|---:|---:|---:|---:|")
+    print(f"| model | card version | stages | training CPU-h | GPU-h | dataset MP | seen MP | relMSE at {a.spp} spp | x OIDN high |")
+    print("|---|---|---:|---:|---:|---:|---:|---:|---:|")
     for r in rows:
         ratio = r["relmse"] / r["oidn"] if r["oidn"] else float("nan")
-        print(f"| {r['model']} | {r['commit']} | {r['stages']} | {r['cpu_h']:.2f} | {r['dataset_mp']:.1f} | "
+        print(f"| {r['model']} | {r['commit']} | {r['stages']} | {r['cpu_h']:.2f} | {r['gpu_h']:.2f} | {r['dataset_mp']:.1f} | "
               f"{r['seen_mp']:.0f} | {r['relmse']:.4f} | {ratio:.2f} |")
     import matplotlib
 
@@ -152,7 +165,11 @@ def main() -> None:
                               ("training CPU-hours (chain, cumulative)", "dataset megapixels (chain)",
                                "megapixels of crops seen (chain)")):
         for model in sorted({r["model"] for r in rows}):
-            rs = sorted((r for r in rows if r["model"] == model), key=lambda r: r[key])
+            # GPU-trained versions have no place on the CPU-hours axis (the table gives their GPU-h).
+            rs = sorted((r for r in rows if r["model"] == model and (key != "cpu_h" or not r["gpu_h"])), key=lambda r: r[key])
+            if not rs:
+                ax.plot([], [], "o-", label=model)
+                continue
             ax.plot([r[key] for r in rs], [r["relmse"] for r in rs], "o-", label=model)
         oidn = [r["oidn"] for r in rows if r["oidn"]]
         if oidn:
