@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Campaign 13 on a lent GPU machine (one H100/H200, 16 cores, no network, no Mitsuba installed):
-# render fresh per-sample training data with Mitsuba's cuda_ad_rgb variant, then train two
-# ~1M-parameter layer-embedding models on it side by side, and pack the run folders into $OUT.
+# render fresh per-sample training data with Mitsuba's cuda_ad_rgb variant, then train the runs
+# listed in $RUNS (default scripts/gpu_runs_c13.txt: campaign 13's two ~1M-parameter layer models)
+# on it side by side, and pack the run folders into $OUT (at most 3 runs: 8 files come back).
 #
 #   bash scripts/gpu_campaign.sh            # on the GPU machine, from the repository root
 #
@@ -67,19 +68,32 @@ tail -3 $ROOT/logs/render_det_0.log
 [ ${#GOOD[@]} -gt 0 ] || { tar -czf $OUT/logs.tgz -C $ROOT logs; exit 4; }
 DATA=$(IFS=,; echo "${GOOD[*]}")
 
-OVA='{"embed_width": 32, "reducer_layers": 3, "context_width": 64, "unet_encoder": [[32], [64], [96], [128]], "unet_bottleneck": [128], "unet_decoder": [[128], [96], [64], [32]], "partitioner_widths": [32, 16], "kernel_widths": [64, 64], "kernel_size": 17, "autoexposure": 0.18}'
-OVT='{"autoexposure": 0.18}'
+# One line per run in $RUNS: NAME|mcdenoise train arguments (after the common ones, so a flag
+# given there wins: argparse keeps the last). All runs train side by side on the one GPU.
+RUNS=${RUNS:-scripts/gpu_runs_c13.txt}
+NAMES=(); ARGS=()
+while IFS='|' read -r name rest; do
+  [[ -z "$name" || "$name" == \#* ]] && continue
+  NAMES+=("$name"); ARGS+=("$rest")
+done < "$RUNS"
+log "runs: ${NAMES[*]} (from $RUNS)"
 COMMON="--data $DATA --val-data ${GOOD[0]} --batch $BATCH --crop $CROP --loss tonemapped_l2 --lr 1e-3 --workers $WORKERS --threads 2 --val-every 0 --val-images 8 --checkpoint-every 100 --keep-every 100000 --spp 2 $SPP --amp bf16 --device $DEVICE --no-progress"
 R=$ROOT/runs; mkdir -p $R
-train_both() {  # $1 = steps; extra args after
-  local steps=$1; shift
-  $MC train --model layer --model-overrides "$OVA" --out $R/layer_m --steps $steps $COMMON "$@" >> $ROOT/logs/train_m.log 2>&1 &
-  $MC train --model layer_optimized --preset paper_timed --model-overrides "$OVT" --out $R/layer_t --steps $steps $COMMON "$@" >> $ROOT/logs/train_t.log 2>&1 &
+train_all() {  # $1 = steps per run (space-separated, one per run), $2 = timeout s (0: none), rest: extra args
+  local steps=($1) limit=$2; shift 2
+  for k in "${!NAMES[@]}"; do
+    eval "local extra=(${ARGS[$k]})"
+    if [ "$limit" -gt 0 ]; then
+      timeout -s TERM $limit $MC train --out $R/${NAMES[$k]} --steps ${steps[$k]} $COMMON "${extra[@]}" "$@" >> $ROOT/logs/train_${NAMES[$k]}.log 2>&1 &
+    else
+      $MC train --out $R/${NAMES[$k]} --steps ${steps[$k]} $COMMON "${extra[@]}" "$@" >> $ROOT/logs/train_${NAMES[$k]}.log 2>&1 &
+    fi
+  done
   wait
 }
 (nvidia-smi --query-gpu=name,utilization.gpu,memory.used --format=csv -l 20 > $ROOT/logs/gpu.txt 2>&1 &)
-train_both $CALIB
-tail -n 2 $ROOT/logs/train_m.log $ROOT/logs/train_t.log
+train_all "$(for n in "${NAMES[@]}"; do echo -n "$CALIB "; done)" 0
+for n in "${NAMES[@]}"; do tail -n 2 $ROOT/logs/train_$n.log; done
 steps_for() {  # run folder -> total steps that fit before the deadline
   $PY - "$1" $CALIB "$(( DEADLINE - $(el) - 45 ))" <<'EOF'
 import csv, statistics, sys
@@ -90,19 +104,16 @@ print(max(c + 1, c + int(max(0, int(sys.argv[3])) / (s * 1.25))), file=sys.stdou
 print(f"{sys.argv[1]}: {s:.3f} s/step", file=sys.stderr)
 EOF
 }
-SM=$(steps_for $R/layer_m); ST=$(steps_for $R/layer_t)
-log "resuming: layer_m to $SM steps, layer_t to $ST steps"
-LEFT=$(( DEADLINE - $(el) - 15 ))
-timeout -s TERM $LEFT $MC train --model layer --model-overrides "$OVA" --out $R/layer_m --steps $SM $COMMON --resume >> $ROOT/logs/train_m.log 2>&1 &
-timeout -s TERM $LEFT $MC train --model layer_optimized --preset paper_timed --model-overrides "$OVT" --out $R/layer_t --steps $ST $COMMON --resume >> $ROOT/logs/train_t.log 2>&1 &
-wait
+STEPS=""; for n in "${NAMES[@]}"; do STEPS="$STEPS $(steps_for $R/$n)"; done
+log "resuming ${NAMES[*]} to$STEPS steps"
+train_all "$STEPS" $(( DEADLINE - $(el) - 15 )) --resume
 log "training done"
-tail -n 3 $ROOT/logs/train_m.log $ROOT/logs/train_t.log
+for n in "${NAMES[@]}"; do tail -n 3 $ROOT/logs/train_$n.log; done
 for r in "${GOOD[@]}"; do mkdir -p $ROOT/logs/ds/$(basename $r); cp $r/dataset.json $r/manifest.json $ROOT/logs/ds/$(basename $r)/; done
 tar -czf $OUT/logs.tgz -C $ROOT logs
-# Two files per run (each must stay under the device tool's 16 MB): the run without its
-# checkpoints, and its newest checkpoint (a killed run's weights are there).
-for m in layer_m layer_t; do
+# Two files per run (each must stay under the device tool's 16 MB and 8 files in all): the run
+# without its checkpoints, and its newest checkpoint (a killed run's weights are there).
+for m in "${NAMES[@]}"; do
   tar -czf $OUT/$m.tgz -C $R --exclude=checkpoints $m
   ck=$(ls -d $R/$m/checkpoints/step_* 2>/dev/null | tail -n 1)
   [ -n "$ck" ] && tar -czf $OUT/${m}_ckpt.tgz -C $R $m/checkpoints/$(basename $ck)
