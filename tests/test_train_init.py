@@ -46,6 +46,26 @@ def test_init_refuses_another_model(tiny: Path, tmp_path: Path, capsys: pytest.C
     assert "\n" not in err and "kpcn" in err and "wskp" in err
 
 
+def test_init_takes_a_run_whose_overrides_equal_the_asked_preset(tiny: Path, tmp_path: Path,
+                                                                   capsys: pytest.CaptureFixture) -> None:
+    """Catches: --init judging the preset by name alone. Campaign 13's GPU run named preset small
+    with --model-overrides that equal preset medium; seeding a medium run from it was refused. A
+    run whose architecture differs from the asked preset must still be refused, in one line."""
+    from mcdenoise.models.registry import build_model
+
+    base = ["train", *RUN, "--data", str(tiny), "--steps", "1"]
+    # The fields in which preset paper3 differs from small: a small run with them is paper3.
+    want, small = build_model("wskp", "paper3").config, build_model("wskp", "small").config
+    over = {k: v for k, v in vars(want).items() if getattr(small, k) != v}
+    assert over
+    assert main([*base, "--out", str(tmp_path / "a"), "--model-overrides", json.dumps(over)]) == 0
+    assert main([*base, "--out", str(tmp_path / "b"), "--preset", "paper3", "--init", str(tmp_path / "a")]) == 0
+    capsys.readouterr()
+    assert main([*base, "--out", str(tmp_path / "c"), "--preset", "paper", "--init", str(tmp_path / "a")]) == 1
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "pass --preset small" in err
+
+
 def test_resume_with_more_steps_extends_a_finished_run(tiny: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     """Catches a finished run that cannot be extended (refused as a config change) or that restarts
     from step 0; fewer steps than done are still refused."""

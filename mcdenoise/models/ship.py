@@ -26,7 +26,7 @@ from typing import Any
 from mcdenoise.errors import McDenoiseError
 from mcdenoise.io.atomic import atomic_file
 from mcdenoise.io.run_folder import CONFIG_FILE, RESULT_FILE, WEIGHTS_FILE, checkpoint_run
-from mcdenoise.models.weights import SHIPPED_DIR, WeightsError, load_denoiser, model_from_config
+from mcdenoise.models.weights import SHIPPED_DIR, WeightsError, load_denoiser, preset_differences
 
 __all__ = ["dataset_command", "train_command", "model_card", "card_markdown", "ship"]
 
@@ -267,19 +267,9 @@ def card_markdown(card: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-#: Configuration fields set on weights after training (``scripts/reconfigure_weights.py``), which a
-#: preset therefore does not fix.
-POST_TRAINING_FIELDS = ("autoexposure", "consistency")
-
-
 def _check_preset(name: str, preset: str, run_config: dict[str, Any] | None, run: Path) -> None:
     """Refuse (one line) to record ``preset`` for a run whose architecture differs from it."""
-    import dataclasses
-
-    # Tuples become lists, as a run's config.json reads back.
-    want = json.loads(json.dumps(dataclasses.asdict(model_from_config(name, preset).config), default=list))
-    got = dict(run_config or {})
-    diff = sorted(k for k in set(want) | set(got) if k not in POST_TRAINING_FIELDS and want.get(k) != got.get(k))
+    diff = preset_differences(name, preset, run_config)
     if diff:
         raise WeightsError(f"{run}: its model configuration differs from preset {preset!r} of {name!r} in {', '.join(diff[:4])}")
 

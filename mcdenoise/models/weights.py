@@ -38,6 +38,8 @@ __all__ = [
     "load_weights",
     "load_denoiser",
     "model_from_config",
+    "POST_TRAINING_FIELDS",
+    "preset_differences",
 ]
 
 SHIPPED_DIR = Path(__file__).resolve().parent / "shipped"
@@ -179,6 +181,22 @@ def _from_run(run: Path) -> tuple[Denoiser, dict[str, Any]]:
         step = int(_metadata(weights).get("step", train.get("steps", 0)) or 0)
     label = run.name if checkpoint is None else f"{run.name}@{step}"
     return model, {"name": name, "preset": preset, "weights": str(weights), "source": "run", "step": step, "label": label}
+
+
+#: Configuration fields set on weights after training (``scripts/reconfigure_weights.py``), which a
+#: preset therefore does not fix.
+POST_TRAINING_FIELDS = ("autoexposure", "consistency")
+
+
+def preset_differences(name: str, preset: str, config: dict[str, Any] | None) -> list[str]:
+    """The fields (sorted) in which a saved model configuration differs from ``preset`` of
+    ``name``, leaving out :data:`POST_TRAINING_FIELDS`: empty when the architecture is the preset's."""
+    import dataclasses
+
+    # Tuples become lists, as a run's config.json reads back.
+    want = json.loads(json.dumps(dataclasses.asdict(model_from_config(name, preset).config), default=list))
+    got = json.loads(json.dumps(dict(config or {}), default=list))
+    return sorted(k for k in set(want) | set(got) if k not in POST_TRAINING_FIELDS and want.get(k) != got.get(k))
 
 
 def shipped_name(spec: str, preset: str | None = None) -> tuple[str, str] | None:

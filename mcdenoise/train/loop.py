@@ -103,14 +103,15 @@ def _model_config_json(model: Denoiser) -> dict[str, Any]:
 def _init_model(cfg: TrainConfig) -> Denoiser:
     """The model of ``cfg.init`` (fine-tuning), in training mode; refuses another model family,
     a preset that differs from the one asked for, and overrides (the weights fix the architecture)."""
-    from mcdenoise.models.weights import load_denoiser
+    from mcdenoise.models.weights import load_denoiser, preset_differences
 
     if cfg.model_overrides:
         raise ConfigError("--init takes the architecture from its weights: model overrides cannot be combined with it")
     model, info = load_denoiser(cfg.init)
     if info["name"] != cfg.model:
         raise ConfigError(f"--init {cfg.init}: holds {info['name']} weights, the run trains {cfg.model}")
-    if info["preset"] != cfg.preset:
+    # A run trained with --model-overrides that equal another preset may seed that preset.
+    if info["preset"] != cfg.preset and preset_differences(cfg.model, cfg.preset, _model_config_json(model)):
         raise ConfigError(f"--init {cfg.init}: preset {info['preset']}, the run asks for {cfg.preset} (pass --preset {info['preset']})")
     return model.float().train()
 
