@@ -32,8 +32,12 @@ export LD_LIBRARY_PATH=/usr/local/nvidia/lib64:/usr/local/nvidia/lib:${LD_LIBRAR
 MC="$PY -m mcdenoise.cli.main"
 nvidia-smi -L 2>/dev/null; $PY --version; nproc
 (ldconfig -p | grep -iE "nvoptix|rtcore"; ls /usr/local/nvidia/lib64 2>/dev/null | grep -iE "optix|rtcore") | head
-ROOT=/tmp/c13; avail=$(df --output=avail -BG /dev/shm | tail -1 | tr -dc 0-9)
-[ "${avail:-0}" -ge 40 ] && ROOT=/dev/shm/c13
+# Data and runs in DATA_ROOT, else in RAM when /dev/shm has room (the GPU machine has 128 GB).
+ROOT=${DATA_ROOT:-/tmp/c13}
+if [ -z "${DATA_ROOT:-}" ]; then
+  avail=$(df --output=avail -BG /dev/shm | tail -1 | tr -dc 0-9)
+  [ "${avail:-0}" -ge 40 ] && ROOT=/dev/shm/c13
+fi
 mkdir -p $ROOT/logs; df -h $ROOT | tail -1
 log "site unpacked; data in $ROOT"
 

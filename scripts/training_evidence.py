@@ -42,12 +42,7 @@ def dataset_mp(cmd: str | None) -> float:
         return sum(dataset_mp(c) for c in cmd.split(" && "))
     size = _flag(cmd, "--size", 64.0)
     w, h = _flag(cmd, "--width", size), _flag(cmd, "--height", size)
-    count = _flag(cmd, "--count", 0.0) or 0.0
-    shard = re.search(r"--shard (\d+)/(\d+)", cmd)
-    if shard:  # scenes i, i + n, i + 2n... of the count
-        i, n = int(shard.group(1)), int(shard.group(2))
-        count = max(0, -(-(int(count) - i) // n))
-    return count * (_flag(cmd, "--views", 1.0) or 1.0) * w * h / 1e6
+    return (_flag(cmd, "--count", 0.0) or 0.0) * (_flag(cmd, "--views", 1.0) or 1.0) * w * h / 1e6
 
 
 def chain_dataset_mp(st: list[dict[str, Any]]) -> float:

@@ -31,9 +31,8 @@ def test_gpu_campaign_script_renders_trains_resumes_and_packs(tmp_path: Path) ->
     out = tmp_path / "out"
     env = {**os.environ, "SKIP_SITE": "1", "PY": sys.executable, "VARIANT": "llvm_ad_rgb", "DEVICE": "cpu",
            "SHARDS": "2", "RENDER_S": "150", "DEADLINE": "260", "BATCH": "2", "CROP": "32", "CALIB": "3",
-           "WORKERS": "0", "COUNT_D": "2", "COUNT_R": "2", "SPP": "4", "RUNS": str(runs), "OUT": str(out)}
-    # The script renders into /dev/shm or /tmp/c13; keep it off a previous run's folder.
-    subprocess.run(["rm", "-rf", "/tmp/c13", "/dev/shm/c13"], check=False)
+           "WORKERS": "0", "COUNT_D": "2", "COUNT_R": "2", "SPP": "4", "RUNS": str(runs), "OUT": str(out),
+           "DATA_ROOT": str(tmp_path / "data")}
     proc = subprocess.run(["bash", "scripts/gpu_campaign.sh"], cwd=ROOT, env=env, capture_output=True, text=True,
                           timeout=500)
     assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]

@@ -14,6 +14,7 @@ test split with Open Image Denoise on the same images.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import datetime
 import hashlib
 import json
@@ -303,9 +304,7 @@ def ship(run_dir: str | Path, *, results_json: str | Path | None = None, out_dir
         except (OSError, ValueError) as e:
             raise WeightsError(f"{results_json}: cannot read eval results ({e})") from None
     if preset is not None and preset != info["preset"]:
-        from mcdenoise.train.config import read_config
-
-        _check_preset(info["name"], preset, read_config(run / CONFIG_FILE).get("model_config"), run)
+        _check_preset(info["name"], preset, dataclasses.asdict(model.config), run)
         trained_as = info["preset"]
         info = {**info, "preset": preset}
     else:
