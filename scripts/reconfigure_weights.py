@@ -7,8 +7,14 @@ the start of a fine-tune into a preset whose layers match but whose inputs or ru
     python scripts/reconfigure_weights.py mcdenoise/models/shipped/sbmc-small.safetensors \
         mcdenoise/models/shipped/sbmc-small.safetensors --keep-step --set consistency=2
 
+    python scripts/reconfigure_weights.py mcdenoise/models/shipped/combine-ens_kpcn.safetensors \
+        runs/combine_em_init.safetensors --zero-new-inputs --set emitter_feature=true
+
 Values are read as JSON where they parse (5, 0.25, true), else as strings. The result must still
-build: the model is constructed from the new configuration and loads the tensors strictly.
+build: the model is constructed from the new configuration and loads the tensors strictly. With
+``--zero-new-inputs`` a field that adds input channels is allowed: a tensor that the new model
+has wider in dimension 1 only (a first convolution's inputs) gets zeros for the new channels,
+appended last, so the model computes what it did until training moves them.
 """
 from __future__ import annotations
 
@@ -32,6 +38,24 @@ def apply_sets(cfg: dict, items: list[str]) -> dict:
     return cfg
 
 
+def zero_new_inputs(tensors: dict, shapes: dict) -> dict:
+    """``tensors`` with each one that ``shapes`` (name -> new shape) has wider in dimension 1 only
+    padded with zeros at the end of that dimension; others as they are. Raises on any other change."""
+    import torch
+
+    out = {}
+    for k, t in tensors.items():
+        new = shapes.get(k)
+        if new is None or tuple(new) == tuple(t.shape):
+            out[k] = t
+            continue
+        if len(new) < 2 or new[0] != t.shape[0] or tuple(new[2:]) != tuple(t.shape[2:]) or new[1] < t.shape[1]:
+            raise SystemExit(f"{k}: shape {tuple(t.shape)} -> {tuple(new)} is not new input channels")
+        pad = torch.zeros((t.shape[0], new[1] - t.shape[1], *t.shape[2:]), dtype=t.dtype)
+        out[k] = torch.cat([t, pad], dim=1)
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("src")
@@ -40,6 +64,8 @@ def main() -> None:
     ap.add_argument("--set", nargs="+", default=[], metavar="FIELD=VALUE")
     ap.add_argument("--keep-step", action="store_true",
                     help="keep the source's training step (a rule set after training on shipped weights); default 0, a new start")
+    ap.add_argument("--zero-new-inputs", action="store_true",
+                    help="allow fields that add input channels: their weights start at zero (same outputs)")
     a = ap.parse_args()
     with safe_open(a.src, "pt") as f:
         meta = dict(f.metadata() or {})
@@ -54,6 +80,8 @@ def main() -> None:
     if not a.keep_step:
         meta["step"] = "0"
     model = model_from_config(meta["model"], meta["preset"], cfg)  # refuses unknown fields
+    if a.zero_new_inputs:
+        tensors = zero_new_inputs(tensors, {k: tuple(v.shape) for k, v in model.state_dict().items()})
     model.load_state_dict(tensors, strict=True)
     save_file(tensors, a.dst, metadata=meta)
     print(f"wrote {a.dst}: {meta['model']} ({meta['preset']}) with {json.dumps(cfg)}")

@@ -471,3 +471,61 @@ def test_trainer_adds_the_own_kernel_loss() -> None:
         aux = model.forward_aux(batch)
     l1 = lambda a: float((a - batch["target"]).abs().mean())  # noqa: E731
     assert total == pytest.approx(l1(aux["image"]) + 0.5 * l1(aux["own"]), rel=1e-5)
+
+
+def _emitter_batch(model: torch.nn.Module, seed: int = 7) -> dict[str, torch.Tensor]:
+    """A batch in Cycles' convention: a few pixels whose albedo is a light's radiance (> 1)."""
+    batch = synthetic_batch(model, height=19, width=23, generator=torch.Generator().manual_seed(seed))
+    batch["albedo"] = batch["albedo"].clamp(0, 1)
+    batch["albedo"][:, :, 5:7, 8:11] = 40.0
+    batch["radiance"][:, :, 5:7, 8:11] = 40.0
+    return batch
+
+
+def test_the_emitter_feature_marks_exactly_the_pixels_with_albedo_above_one() -> None:
+    """Catches an emitter channel built from the clamped albedo (all zeros: the network still could
+    not tell a light from a white wall) or one that is non-zero on our own convention (albedo <= 1,
+    0 on a miss), where it would change a trained combiner's output."""
+    from mcdenoise.models.combine import combine_features
+
+    model = build_model("combine", "ens")
+    batch = _emitter_batch(model)
+    feats = combine_features(batch, prefiltered=True, emitter=True)
+    mask = feats[:, -1]
+    assert torch.equal(mask.bool(), (batch["albedo"].amax(1) > 1))
+    batch["albedo"] = batch["albedo"].clamp(0, 1)
+    assert float(combine_features(batch, prefiltered=True, emitter=True)[:, -1].abs().sum()) == 0.0
+
+
+def test_zero_new_inputs_starts_the_emitter_combiner_where_the_old_one_was(tmp_path: Path) -> None:
+    """Catches `reconfigure_weights.py --zero-new-inputs` padding the first convolution anywhere but
+    where the feature sits (the last channel): the reconfigured combiner would not compute what the
+    source did, so a fine-tune would start from damaged weights. Also that training then gives the
+    new channel a gradient (it would otherwise stay zero for ever)."""
+    import json
+    import subprocess
+    import sys
+
+    from safetensors.torch import save_file
+
+    from mcdenoise.models.weights import load_denoiser
+
+    src = _with_kernel_candidate(3)
+    cfg = json.loads(json.dumps({k: v for k, v in vars(src.config).items()}))
+    path, dst = tmp_path / "src.safetensors", tmp_path / "dst.safetensors"
+    save_file({k: v.contiguous() for k, v in src.state_dict().items()}, str(path),
+              metadata={"model": "combine", "preset": "ens_kpcn", "model_config": json.dumps(cfg)})
+    script = Path(__file__).resolve().parent.parent / "scripts" / "reconfigure_weights.py"
+    subprocess.run([sys.executable, str(script), str(path), str(dst), "--zero-new-inputs", "--set", "emitter_feature=true"],
+                   check=True, capture_output=True)
+    new, _ = load_denoiser(dst)
+    def first(m: torch.nn.Module) -> torch.nn.Parameter:
+        return next(p for p in m.net.parameters() if p.dim() == 4)
+
+    assert new.config.emitter_feature and first(new).shape[1] == first(src).shape[1] + 1
+    batch = {k: v.double() for k, v in _emitter_batch(src).items()}
+    with torch.no_grad():  # float64: a zero channel only reorders the convolution's sums
+        torch.testing.assert_close(new.double().eval()(batch), src.double()(batch))
+    new.train()
+    new(batch).square().mean().backward()
+    assert float(first(new).grad[:, -1].abs().sum()) > 0

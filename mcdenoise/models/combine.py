@@ -27,7 +27,7 @@ import torch.nn.functional as F
 
 from mcdenoise.models.base import Denoiser, build_from_fields, register_model
 from mcdenoise.models.blocks import UNet
-from mcdenoise.models.emitters import as_reflectance
+from mcdenoise.models.emitters import as_reflectance, emitter_mask
 from mcdenoise.models.kpcn import apply_kernels
 
 __all__ = ["CombineConfig", "Combine", "combine_features"]
@@ -126,6 +126,15 @@ class CombineConfig:
     kernel_candidate_config: dict | None = None
     """The candidate model's configuration fields over its preset (a shipped card's
     ``model_config``), so the combiner's file alone rebuilds it."""
+    emitter_feature: bool = False
+    """Give the weight network one more input, the emitter mask (1 where an albedo value exceeds 1:
+    :func:`~mcdenoise.models.emitters.emitter_mask`, Cycles' lights seen directly or in a mirror).
+    Why: the albedo feature is clamped to [0, 1], so a light's pixel reads as a white wall, while
+    at a light's edge every candidate can be far off (issue 21's room at 8 spp: reference 0.97,
+    OIDN 7.0, the noisy mean and kpcn-pixel 11.9) and which one errs least there is a question of
+    the pixel's kind the network could not see. Zero on data in our own convention (albedo <= 1),
+    so it changes nothing there; ``scripts/reconfigure_weights.py --zero-new-inputs`` starts it
+    from a combiner without it (zero weights on the new channel: the same outputs)."""
 
 
 #: Candidate channels, in the order of the predicted weights (``prefiltered``: PF_CANDIDATES).
@@ -139,6 +148,8 @@ N_VARIANCE_FEATURES = 2
 N_PF_FEATURES = 3 + 1
 #: With ``own_kernel``: the log of the demodulated noisy mean (what the kernel filters).
 N_OWN_FEATURES = 3
+#: With ``emitter_feature``: the emitter mask, last.
+N_EMITTER_FEATURES = 1
 #: Added to the albedo before demodulating (KPCN's, Bako et al. 2017 Sec. 4.3).
 ALBEDO_EPS = 0.00316
 
@@ -157,12 +168,13 @@ def demodulate(batch: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tens
 
 
 def combine_features(batch: dict[str, torch.Tensor], use_variance: bool = False, prefiltered: bool = False,
-                     kernel: torch.Tensor | None = None, own: bool = False) -> torch.Tensor:
-    """``(B, N_FEATURES [+ N_VARIANCE_FEATURES] [+ N_PF_FEATURES] [+ N_PF_FEATURES] [+ N_OWN_FEATURES], H, W)``
-    inputs of the weight network, exposure-normalised where it matters (log colour; ratios, not
-    differences). ``kernel``: the kernel-model candidate ``(B, 3, H, W)``, described like ``oidn_pf``
-    (its log colour and relative deviation from OIDN); ``own``: the log demodulated noisy mean the
-    own kernel filters (:func:`demodulate`)."""
+                     kernel: torch.Tensor | None = None, own: bool = False, emitter: bool = False) -> torch.Tensor:
+    """``(B, N_FEATURES [+ N_VARIANCE_FEATURES] [+ N_PF_FEATURES] [+ N_PF_FEATURES] [+ N_OWN_FEATURES]
+    [+ N_EMITTER_FEATURES], H, W)`` inputs of the weight network, exposure-normalised where it
+    matters (log colour; ratios, not differences). ``kernel``: the kernel-model candidate ``(B, 3,
+    H, W)``, described like ``oidn_pf`` (its log colour and relative deviation from OIDN); ``own``:
+    the log demodulated noisy mean the own kernel filters (:func:`demodulate`); ``emitter``: the
+    emitter mask (``CombineConfig.emitter_feature``)."""
     oidn = batch["oidn"].clamp_min(0)
     noisy = batch["radiance"].clamp_min(0)
     lo, ln = _lum(oidn), _lum(noisy)
@@ -182,6 +194,8 @@ def combine_features(batch: dict[str, torch.Tensor], use_variance: bool = False,
         feats += [torch.log1p(kc), torch.log1p((_lum(kc) - lo).abs() / (lo + EPS))]
     if own:
         feats.append(torch.log1p(demodulate(batch)[0]))
+    if emitter:
+        feats.append(emitter_mask(batch["albedo"]).to(oidn.dtype))
     return torch.cat(feats, dim=1)
 
 
@@ -248,6 +262,7 @@ class Combine(Denoiser):
         if ko < 0 or (ko and ko % 2 == 0) or config.own_kernel_loss < 0:
             raise ValueError(f"own_kernel must be 0 or odd and own_kernel_loss >= 0, got {ko}, {config.own_kernel_loss}")
         n_in += N_OWN_FEATURES if ko else 0
+        n_in += N_EMITTER_FEATURES if config.emitter_feature else 0
         self.n_weights = (len(self.names) + (ko > 0) + (self.kernel_model is not None)) * k2
         self.net = UNet(n_in, self.n_weights + ko * ko, [(w, w)] * config.levels, (w, w), [(w, w)] * config.levels)
         if config.noisy_clamp_ref not in ("oidn", "min"):
@@ -295,7 +310,8 @@ class Combine(Denoiser):
         return self.kernel_model(batch).to(batch["oidn"].dtype)
 
     def features(self, batch: dict[str, torch.Tensor], kernel: torch.Tensor | None = None) -> torch.Tensor:
-        return combine_features(batch, self.config.use_variance, self.config.prefiltered, kernel, self.config.own_kernel > 0)
+        return combine_features(batch, self.config.use_variance, self.config.prefiltered, kernel, self.config.own_kernel > 0,
+                                self.config.emitter_feature)
 
     def predict(self, batch: dict[str, torch.Tensor], kernel: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor | None]:
         """The weight network's two heads: (B, n_candidates * k * k, H, W) softmax weights
