@@ -31,9 +31,12 @@ def main() -> None:
     ap.add_argument("--spp", type=int, default=16)
     ap.add_argument("--seed", type=int, default=7)
     ap.add_argument("--top", type=int, default=40)
+    ap.add_argument("--warm", action="store_true",
+                    help="keep the user's kernel cache (run twice: the second run has no compilation)")
     a = ap.parse_args()
     tmp = tempfile.mkdtemp(prefix="profile_dataset_")
-    os.environ["DRJIT_CACHE_DIR"] = str(Path(tmp) / "drjit-cache")  # before the first Dr.Jit import
+    if not a.warm:  # before the first Dr.Jit import
+        os.environ["DRJIT_CACHE_DIR"] = str(Path(tmp) / "drjit-cache")
 
     from mcdenoise.render.procedural_dataset import DatasetConfig, render_dataset
 

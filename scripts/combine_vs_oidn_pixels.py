@@ -47,8 +47,13 @@ def main() -> None:
         p = inp.pixels
         batch = {k: torch.from_numpy(np.ascontiguousarray(p[k]))[None].float() for k in model.required_channels()}
         with torch.no_grad():
-            out, w = model(batch)[0].numpy(), model.weights(batch)[0].numpy()
-        maps = {n: _rel(p[n], ref) for n in model.names if n != "radiance"} | {"combined": _rel(out, ref)}
+            kernel = model.kernel_output(batch)  # a kernel model's candidate (ens_kpcn, kpcn), else None
+            out, w = model(batch)[0].numpy(), model.weights(batch, kernel)[0].numpy()
+        names = list(model.names)
+        if kernel is not None:
+            p = {**p, "kernel": kernel[0].numpy()}
+            names.append("kernel")
+        maps = {n: _rel(p[n], ref) for n in names if n != "radiance"} | {"combined": _rel(out, ref)}
         print(f"\n{name}: relMSE " + ", ".join(f"{k} {v.mean():.5f}" for k, v in maps.items())
               + f"; combined / oidn {maps['combined'].mean() / maps['oidn'].mean():.3f}")
         d = (maps["combined"] - maps["oidn"]).ravel()
@@ -57,7 +62,7 @@ def main() -> None:
               f"{d[d < 0].sum():.2f}); top {a.top}: {d[top].sum():.2f}")
         for i in top:
             y, x = divmod(int(i), ref.shape[2])
-            vals = " ".join(f"{n} {p[n][:, y, x].mean():.3g}" for n in model.names)
+            vals = " ".join(f"{n} {p[n][:, y, x].mean():.3g}" for n in names)
             ws = " ".join(f"{v:.2f}" for v in w[:, y, x])
             print(f"  ({y:3d},{x:3d}) ref {ref[:, y, x].mean():.3g} {vals} combined {out[:, y, x].mean():.3g} "
                   f"weights {ws} albedo max {p['albedo'][:, y, x].max():.3g} excess {d[i]:.3f}")
