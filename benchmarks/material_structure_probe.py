@@ -12,9 +12,10 @@ For each seed the scene is drawn (unchecked, as the generator draws it) and rend
 - ``diffuse_each``: every BSDF replaced by a diffuse BSDF of its own (a constant reflectance of its
   own colour): one structure, many instances (does Dr.Jit merge them into one callable?).
 
-Each version is loaded and rendered 3 times; printed: the LLVM compile time of its new kernels
-(Dr.Jit's kernel history), the first render (with compilation) and the median of the other two,
-and the kernel's callable count where the IR says it. Fresh kernel cache per process.
+Each version is loaded and rendered 3 times; printed: the scene dict's entry count, the LLVM
+compile time of its new kernels (Dr.Jit's kernel history; 0 when an earlier scene's kernel was
+reused), the first render (with compilation) and the median of the other two. Fresh kernel
+cache per process.
 """
 
 from __future__ import annotations
@@ -62,7 +63,7 @@ def main() -> None:
     dr.set_flag(dr.JitFlag.KernelHistory, True)
     settings = RenderSettings(spp=16, ref_spp=0, width=128, height=128, max_depth=8)
     print(f"world {a.world}, 128x128, 16 spp, max depth 8; seconds per render")
-    print(f"{'seed':>4} {'version':<13} {'objects':>7} {'compile s':>9} {'first':>6} {'later':>6}")
+    print(f"{'seed':>4} {'version':<13} {'entries':>7} {'compile s':>9} {'first':>6} {'later':>6}")
     for seed in a.seeds:
         ps = _draw(seed, None, 128, 128, (10, 40), a.world)
         shared = {"type": "diffuse", "id": "shared_bsdf", "reflectance": {"type": "rgb", "value": [0.5, 0.5, 0.5]}}
