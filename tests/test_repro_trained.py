@@ -180,6 +180,10 @@ def test_model_overrides_reach_the_model_and_the_run_folder(tiny: Path, tmp_path
     train(cfg, tmp_path / "run")
     saved = json.loads((tmp_path / "run" / "config.json").read_text())
     assert saved["model_config"]["kernel_sizes"] == [5] and saved["train"]["model_overrides"] == {"kernel_sizes": [5]}
+    # The final weights file alone rebuilds the overridden architecture (it failed to load by path).
+    from mcdenoise.models.weights import load_denoiser
+
+    assert list(load_denoiser(tmp_path / "run" / "model.safetensors")[0].config.kernel_sizes) == [5]
     assert train(cfg, tmp_path / "run", resume=True).step == 2  # same settings: accepted, nothing to do
     # A run folder written before the field existed still resumes under a command without overrides.
     plain = dataclasses.replace(cfg, model_overrides={})

@@ -363,7 +363,11 @@ def _write_final(out: Path, model: Denoiser, cfg: TrainConfig, device: torch.dev
     from safetensors.torch import save_file
 
     with atomic_file(out / WEIGHTS_FILE) as tmp:
-        save_file(state_dict_for_safetensors(model), str(tmp), metadata={"model": cfg.model, "preset": cfg.preset, "step": str(cfg.steps)})
+        # The architecture travels with the file: a run trained with overrides or from a reconfigured
+        # --init loads by its path alone, not only through its run folder.
+        save_file(state_dict_for_safetensors(model), str(tmp), metadata={
+            "model": cfg.model, "preset": cfg.preset, "step": str(cfg.steps),
+            "model_config": json.dumps(_model_config_json(model))})
     summary = {"model": cfg.model, "preset": cfg.preset, "steps": cfg.steps, "skipped": skipped, "device": str(device),
                "world_size": world, "wall_s": wall_before + wall, "wall_s_this_call": wall,
                "cpu_s_this_call": _cpu_seconds(), "val": val}
