@@ -10,7 +10,10 @@ For each seed the scene is drawn (unchecked, as the generator draws it) and rend
 - ``one_diffuse``: every BSDF replaced by the *same* diffuse BSDF object (one instance, one
   callable): the least a shared structure could cost;
 - ``diffuse_each``: every BSDF replaced by a diffuse BSDF of its own (a constant reflectance of its
-  own colour): one structure, many instances (does Dr.Jit merge them into one callable?).
+  own colour): one structure, many instances (does Dr.Jit merge them into one callable?);
+- ``principled_each``: every BSDF replaced by a ``principled`` BSDF of its own (its own base colour,
+  roughness, metallic and transmission values): one structure rich enough for plastics, metals
+  and glass, the candidate of an uber-material generator.
 
 Each version is loaded and rendered 3 times; printed: the scene dict's entry count, the LLVM
 compile time of its new kernels (Dr.Jit's kernel history; 0 when an earlier scene's kernel was
@@ -74,6 +77,10 @@ def main() -> None:
             "diffuse_each": _replace_bsdfs(ps.scene, lambda _: {
                 "type": "diffuse", "reflectance": {"type": "rgb", "value": rng.uniform(0.1, 0.8, 3).tolist()}}),
         }
+        versions["principled_each"] = _replace_bsdfs(ps.scene, lambda _: {
+            "type": "principled", "base_color": {"type": "rgb", "value": rng.uniform(0.1, 0.8, 3).tolist()},
+            "roughness": float(rng.uniform(0.05, 0.9)), "metallic": float(rng.uniform(0, 1)),
+            "spec_trans": float(rng.uniform(0, 1))})
         one = _replace_bsdfs(ps.scene, lambda _: {"type": "ref", "id": "shared_bsdf"})
         versions["one_diffuse"] = {**one, "shared_bsdf": shared}
         for name, scene_dict in versions.items():
