@@ -14,8 +14,10 @@ identical; the figure says how far the generator's scenes are from that (docs/DA
 from __future__ import annotations
 
 import argparse
+import atexit
 import os
 import re
+import shutil
 import sys
 import tempfile
 from pathlib import Path
@@ -31,6 +33,7 @@ def main() -> None:
     ap.add_argument("--objects", default="10-40")
     a = ap.parse_args()
     tmp = Path(tempfile.mkdtemp(prefix="kernel_sharing_"))
+    atexit.register(shutil.rmtree, tmp, True)  # the kernel cache, the renders (and the IR log: ~70 MB)
     os.environ["DRJIT_CACHE_DIR"] = str(tmp / "drjit-cache")  # before the first Dr.Jit import
 
     import drjit as dr

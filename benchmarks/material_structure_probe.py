@@ -24,7 +24,9 @@ cache per process.
 from __future__ import annotations
 
 import argparse
+import atexit
 import os
+import shutil
 import statistics
 import sys
 import tempfile
@@ -54,6 +56,7 @@ def main() -> None:
     ap.add_argument("--world", default="detailed")
     a = ap.parse_args()
     tmp = Path(tempfile.mkdtemp(prefix="material_probe_"))
+    atexit.register(shutil.rmtree, tmp, True)  # the kernel cache, the renders (and the IR log: ~70 MB)
     os.environ["DRJIT_CACHE_DIR"] = str(tmp / "drjit-cache")  # before the first Dr.Jit import
 
     import drjit as dr
@@ -73,16 +76,14 @@ def main() -> None:
         rng = np.random.default_rng(seed)
         versions = {
             "drawn": ps.scene,
-            "one_diffuse": None,
+            "one_diffuse": {**_replace_bsdfs(ps.scene, lambda _: {"type": "ref", "id": "shared_bsdf"}), "shared_bsdf": shared},
             "diffuse_each": _replace_bsdfs(ps.scene, lambda _: {
                 "type": "diffuse", "reflectance": {"type": "rgb", "value": rng.uniform(0.1, 0.8, 3).tolist()}}),
+            "principled_each": _replace_bsdfs(ps.scene, lambda _: {
+                "type": "principled", "base_color": {"type": "rgb", "value": rng.uniform(0.1, 0.8, 3).tolist()},
+                "roughness": float(rng.uniform(0.05, 0.9)), "metallic": float(rng.uniform(0, 1)),
+                "spec_trans": float(rng.uniform(0, 1))}),
         }
-        versions["principled_each"] = _replace_bsdfs(ps.scene, lambda _: {
-            "type": "principled", "base_color": {"type": "rgb", "value": rng.uniform(0.1, 0.8, 3).tolist()},
-            "roughness": float(rng.uniform(0.05, 0.9)), "metallic": float(rng.uniform(0, 1)),
-            "spec_trans": float(rng.uniform(0, 1))})
-        one = _replace_bsdfs(ps.scene, lambda _: {"type": "ref", "id": "shared_bsdf"})
-        versions["one_diffuse"] = {**one, "shared_bsdf": shared}
         for name, scene_dict in versions.items():
             dr.kernel_history()  # clear
             times = []
