@@ -12,6 +12,12 @@ execution ms, cache hit). The figures of docs/DATASETS.md "Where the rest goes" 
 ``--reload`` renders the cornell box, then loads it again while the first scene is still
 referenced and renders that: it prints both path-tracer kernels' operation counts and whether the
 second hit the first's kernel (it does not: every live instance's code joins the virtual calls).
+
+``--variants`` asks what a kernel shared across scenes needs: it renders the cornell box, frees it,
+then renders edited copies one at a time (each freed before the next) and prints, per edit, the
+path tracer's operation count and whether it hit the kernel compiled before: the same scene again,
+other colours and light, moved geometry, an extra shape with an existing material, an extra
+material, a shape of another type.
 """
 
 from __future__ import annotations
@@ -35,6 +41,7 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=7)
     ap.add_argument("--warm", action="store_true", help="keep the user's kernel cache")
     ap.add_argument("--reload", action="store_true", help="the cornell box loaded twice instead")
+    ap.add_argument("--variants", action="store_true", help="edited cornell boxes, one alive at a time")
     a = ap.parse_args()
     tmp = Path(tempfile.mkdtemp(prefix="kernel_history_"))
     if not a.warm:  # before the first Dr.Jit import
@@ -47,6 +54,9 @@ def main() -> None:
     from mcdenoise.render.samples import iter_sample_chunks
 
     dr.set_flag(dr.JitFlag.KernelHistory, True)
+    if a.variants:
+        _variants(dr, load_scene, iter_sample_chunks, RenderSettings)
+        return
     if a.reload:
         settings = RenderSettings(spp=16, ref_spp=0, width=128, height=128, max_depth=8)
         alive = []
@@ -79,6 +89,63 @@ def main() -> None:
     for e in h:
         if e.get("operation_count", 0) >= BANDS[-1][0]:
             print(f"  {e.get('size')} {e['operation_count']} {e.get('execution_time', 0):.1f} {bool(e.get('cache_hit'))}")
+
+
+def _cornell_edits() -> list[tuple[str, dict]]:
+    """(label, scene dict): the cornell box and edits of it that keep or change its structure."""
+    import gc
+
+    from mcdenoise.render._mitsuba import mitsuba
+
+    mi = mitsuba()  # the variant set
+    base = mi.cornell_box()
+    fresh = mi.cornell_box  # a new dict each call (transforms do not deep-copy)
+    out = [("cornell box", base), ("the same again", fresh())]
+    d = fresh()
+    d["red"]["reflectance"]["value"] = [0.1, 0.2, 0.7]
+    d["white"]["reflectance"]["value"] = [0.3, 0.3, 0.3]
+    d["light"]["emitter"]["radiance"]["value"] = [180.0, 150.0, 100.0]
+    out.append(("other colours and light", d))
+    d = fresh()
+    d["small-box"]["to_world"] = mi.ScalarTransform4f().translate([-0.3, -0.8, 0.2]).scale(0.2)
+    d["large-box"]["to_world"] = mi.ScalarTransform4f().translate([0.4, -0.5, -0.3]).rotate([0, 1, 0], 30).scale([0.25, 0.5, 0.25])
+    out.append(("moved geometry", d))
+    d = fresh()
+    d["third-box"] = {"type": "cube", "to_world": mi.ScalarTransform4f().translate([0, 0.5, 0]).scale(0.1),
+                      "bsdf": {"type": "ref", "id": "white"}}
+    out.append(("an extra shape, existing material", d))
+    d = fresh()
+    d["blue"] = {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.1, 0.1, 0.6]}}
+    d["small-box"]["bsdf"] = {"type": "ref", "id": "blue"}
+    out.append(("an extra material of a present type", d))
+    d = fresh()
+    d["small-box"] = {"type": "sphere", "center": [0.3, -0.7, 0.4], "radius": 0.3, "bsdf": {"type": "ref", "id": "white"}}
+    out.append(("a cube replaced by a sphere", d))
+    gc.collect()
+    return out
+
+
+def _variants(dr, load_scene, iter_sample_chunks, RenderSettings) -> None:  # noqa: ANN001 - imported late
+    import gc
+
+    settings = RenderSettings(spp=16, ref_spp=0, width=128, height=128, max_depth=8)
+    seen: dict[int, str] = {}
+    for label, d in _cornell_edits():
+        scene = load_scene(d, width=128, height=128)
+        dr.kernel_history()  # clear
+        t = time.perf_counter()
+        for _ in iter_sample_chunks(scene, settings):
+            pass
+        wall = time.perf_counter() - t
+        big = max(dr.kernel_history(), key=lambda e: e.get("operation_count", 0))
+        ops = big["operation_count"]
+        print(f"{label:40s} path tracer {ops} ops, cache hit {bool(big.get('cache_hit'))}, compile "
+              f"{big.get('backend_time', 0):.0f} ms, render {wall:.2f} s"
+              + (f" (same size as: {seen[ops]})" if ops in seen else ""))
+        seen.setdefault(ops, label)
+        del scene
+        gc.collect()
+        dr.flush_malloc_cache()
 
 
 if __name__ == "__main__":

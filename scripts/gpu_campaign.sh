@@ -5,6 +5,8 @@
 # on it side by side, and pack the run folders into $OUT (at most 3 runs: 8 files come back).
 #
 #   bash scripts/gpu_campaign.sh            # on the GPU machine, from the repository root
+#   DEADLINE=555 REF_SPP=512 SEED_D=1601 SEED_R=1602 RUNS=scripts/gpu_runs_c16.txt bash scripts/gpu_campaign.sh
+#                                           # campaign 16 (carry .gpu/, with .gpu/layer_m_init.safetensors)
 #
 # Needs .gpu/site_mi.tar.xz and .gpu/site_dr.tar.xz (made by scripts/gpu_site.sh: the cp312 wheels
 # of mitsuba 3.9.1, drjit 1.5.0 and OpenEXR 3.5.3, unpacked and slimmed to the RGB variants so
@@ -19,6 +21,8 @@ DEADLINE=${DEADLINE:-540}   # s from start: runs are packed by then
 RENDER_S=${RENDER_S:-150}   # s of rendering (shards are killed then; finished images are kept)
 SHARDS=${SHARDS:-12}        # parallel render processes (2/3 detailed world, 1/3 rich)
 SPP=${SPP:-12}
+REF_SPP=${REF_SPP:-1024}  # reference spp (campaign 16: 512, more scenes in the same seconds)
+SEED_D=${SEED_D:-1301}; SEED_R=${SEED_R:-1302}   # dataset seeds of the two worlds (campaign 13's by default)
 VARIANT=${VARIANT:-cuda_ad_rgb}; DEVICE=${DEVICE:-cuda}; PY=${PY:-python3}
 BATCH=${BATCH:-16}; CROP=${CROP:-128}; CALIB=${CALIB:-40}; WORKERS=${WORKERS:-6}
 COUNT_D=${COUNT_D:-240}; COUNT_R=${COUNT_R:-120}   # scenes (x4 views), 25 MB per image at 12 spp
@@ -50,15 +54,15 @@ EOF
 log "mitsuba ok"
 
 # Render shards, each its own dataset folder (shard i/n of one recipe; their union is the set).
-DS="--spp $SPP --ref-spp 1024 --size 128 --variant $VARIANT --max-depth 8 --objects 10-40 --views 4 --split 0.95,0.05,0 --max-gb 60 --no-progress"
+DS="--spp $SPP --ref-spp $REF_SPP --size 128 --variant $VARIANT --max-depth 8 --objects 10-40 --views 4 --split 0.95,0.05,0 --max-gb 60 --no-progress"
 ND=$(( SHARDS * 2 / 3 )); NR=$(( SHARDS - ND )); ROOTS=()
 for i in $(seq 0 $((ND - 1))); do
   ROOTS+=($ROOT/det_$i)
-  timeout -s TERM $RENDER_S $MC dataset --out $ROOT/det_$i --count $COUNT_D --world detailed --seed 1301 --shard $i/$ND $DS > $ROOT/logs/render_det_$i.log 2>&1 &
+  timeout -s TERM $RENDER_S $MC dataset --out $ROOT/det_$i --count $COUNT_D --world detailed --seed $SEED_D --shard $i/$ND $DS > $ROOT/logs/render_det_$i.log 2>&1 &
 done
 for i in $(seq 0 $((NR - 1))); do
   ROOTS+=($ROOT/rich_$i)
-  timeout -s TERM $RENDER_S $MC dataset --out $ROOT/rich_$i --count $COUNT_R --world rich --seed 1302 --shard $i/$NR $DS > $ROOT/logs/render_rich_$i.log 2>&1 &
+  timeout -s TERM $RENDER_S $MC dataset --out $ROOT/rich_$i --count $COUNT_R --world rich --seed $SEED_R --shard $i/$NR $DS > $ROOT/logs/render_rich_$i.log 2>&1 &
 done
 sleep 45
 n=$(ls -d $ROOT/*/proc_* 2>/dev/null | wc -l); log "after 45 s: $n scenes finished"

@@ -31,7 +31,7 @@ def test_gpu_campaign_script_renders_trains_resumes_and_packs(tmp_path: Path) ->
     out = tmp_path / "out"
     env = {**os.environ, "SKIP_SITE": "1", "PY": sys.executable, "VARIANT": "llvm_ad_rgb", "DEVICE": "cpu",
            "SHARDS": "2", "RENDER_S": "150", "DEADLINE": "260", "BATCH": "2", "CROP": "32", "CALIB": "3",
-           "WORKERS": "0", "COUNT_D": "2", "COUNT_R": "2", "SPP": "4", "RUNS": str(runs), "OUT": str(out),
+           "WORKERS": "0", "COUNT_D": "2", "COUNT_R": "2", "SPP": "4", "REF_SPP": "32", "SEED_D": "5", "SEED_R": "6", "RUNS": str(runs), "OUT": str(out),
            "DATA_ROOT": str(tmp_path / "data")}
     proc = subprocess.run(["bash", "scripts/gpu_campaign.sh"], cwd=ROOT, env=env, capture_output=True, text=True,
                           timeout=500)
@@ -44,5 +44,10 @@ def test_gpu_campaign_script_renders_trains_resumes_and_packs(tmp_path: Path) ->
             t.extractall(tmp_path / "x", filter="data")
         lines = (tmp_path / "x" / run / "metrics.csv").read_text().splitlines()
         assert int(lines[-1].split(",")[0]) > 3  # resumed past the 3-step calibration leg
+    with tarfile.open(out / "logs.tgz") as t:  # the shards' recipes: campaign 16's settings reach them
+        t.extractall(tmp_path / "logs", filter="data")
+    import json
+    ds = json.loads((tmp_path / "logs" / "logs" / "ds" / "det_0" / "dataset.json").read_text())
+    assert (ds["ref_spp"], ds["seed"], ds["world"]) == (32, 5, "detailed")
     cfg = (tmp_path / "x" / "lm" / "config.json").read_text()
     assert '"autoexposure": 0.18' in cfg and '"preset": "small"' in cfg

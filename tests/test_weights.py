@@ -247,3 +247,37 @@ def test_shipped_weights_load_by_their_file_name() -> None:
         assert info["label"] == f"{sw.name}-{sw.preset}" and Path(info["weights"]) == sw.weights
     with pytest.raises(WeightsError, match="preset 'nope'"):
         load_denoiser("kpcn-nope")
+
+
+def test_average_weights_mixes_tensors_and_keeps_a_loadable_file(run: Path, tmp_path: Path) -> None:
+    """Catches scripts/average_weights.py writing anything but sum_i w_i theta_i (a weight applied
+    twice or to one input only), losing the model configuration (the result would not load by
+    file), or averaging models whose tensors differ in shape instead of refusing them."""
+    import subprocess
+    import sys
+
+    from safetensors import safe_open
+    from safetensors.torch import load_file
+
+    script = Path(__file__).resolve().parent.parent / "scripts" / "average_weights.py"
+    src = load_file(str(run / "model.safetensors"))
+    with safe_open(str(run / "model.safetensors"), "pt") as f:
+        meta = f.metadata()
+    other = {k: (v + 1.0 if v.is_floating_point() else v) for k, v in src.items()}
+    save_file(other, str(tmp_path / "other.safetensors"), metadata=meta)
+    out = tmp_path / "mix.safetensors"
+    subprocess.run([sys.executable, str(script), str(out), str(run), str(tmp_path / "other.safetensors"),
+                    "--weights", "0.25", "0.75", "--set", "channels=6"], check=True, capture_output=True)
+    mix = load_file(str(out))
+    for k, v in src.items():
+        if v.is_floating_point():
+            torch.testing.assert_close(mix[k], v + 0.75, rtol=0, atol=1e-6)
+    model, info = W.load_denoiser(str(out))
+    assert info["name"] == "wskp" and model.config.channels == 6
+    bad = dict(other)
+    k = next(k for k, v in bad.items() if v.is_floating_point() and v.dim() > 1)
+    bad[k] = bad[k][:1]
+    save_file(bad, str(tmp_path / "bad.safetensors"), metadata=meta)
+    proc = subprocess.run([sys.executable, str(script), str(tmp_path / "x.safetensors"), str(run),
+                           str(tmp_path / "bad.safetensors")], capture_output=True, text=True)
+    assert proc.returncode != 0 and "shape" in proc.stderr and not (tmp_path / "x.safetensors").exists()
