@@ -1,0 +1,57 @@
+"""Does a model move light between dim and bright regions? For each image, the mean of the model's
+output over the mean of the reference in each quartile of the reference's luminance (1.0: unbiased
+there). A ratio above 1 in the dim quartiles and below 1 in the brightest is light leaking from
+bright into dim regions, which relMSE (weighting dark pixels most) punishes and PSNR barely sees.
+
+    python scripts/brightness_by_quartile.py data/scene_inputs --models layer-medium runs/lm16a_k4.safetensors --spp 4
+
+``data/scene_inputs`` is where `mcdenoise eval --scenes` keeps the third-party scenes' inputs
+(every image folder under a root is read, as eval reads a folder of image folders).
+"""
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+
+from mcdenoise.eval.images import collect_images
+from mcdenoise.eval.methods import Inputs, ModelMethod
+from mcdenoise.models.weights import load_denoiser
+
+
+def quartile_ratios(out: np.ndarray, ref: np.ndarray) -> list[float]:
+    """Mean luminance of ``out`` over ``ref``'s in each quartile of ``ref``'s luminance; (3, H, W) each."""
+    lo, ro = out.mean(0), ref.mean(0)
+    q = np.quantile(ro, [0.25, 0.5, 0.75])
+    edges = [-np.inf, *q, np.inf]
+    ratios = []
+    for a, b in zip(edges[:-1], edges[1:]):
+        m = (ro > a) & (ro <= b)
+        ratios.append(float(lo[m].mean() / max(ro[m].mean(), 1e-12)) if m.any() else float("nan"))
+    return ratios
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("roots", nargs="+")
+    ap.add_argument("--models", nargs="+", required=True)
+    ap.add_argument("--spp", type=int, default=4)
+    a = ap.parse_args()
+    methods = []
+    for spec in a.models:
+        m, info = load_denoiser(spec)
+        methods.append(ModelMethod(info.get("label", spec), m, info, "cpu"))
+    images = [e.folder for e in collect_images(a.roots, split="val")[0]]
+    print(f"{a.spp} spp; per model: output/reference mean in the reference's luminance quartiles, dim to bright")
+    for im in images:
+        ref = im.read_reference(["radiance"])["radiance"]
+        x = Inputs(im, a.spp)
+        cells = []
+        for meth in methods:
+            r = quartile_ratios(meth.run(meth.prepare(x)), ref)
+            cells.append(f"{meth.name[:14]:14s} " + " ".join(f"{v:.3f}" for v in r))
+        print(f"{im.path.name[:30]:30s} | " + " | ".join(cells))
+
+
+if __name__ == "__main__":
+    main()
