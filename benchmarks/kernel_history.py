@@ -17,7 +17,7 @@ second hit the first's kernel (it does not: every live instance's code joins the
 then renders edited copies one at a time (each freed before the next) and prints, per edit, the
 path tracer's operation count and whether it hit the kernel compiled before: the same scene again,
 other colours and light, moved geometry, an extra shape with an existing material, an extra
-material, a shape of another type.
+material (with values of its own, and with a present material's values), a shape of another type.
 """
 
 from __future__ import annotations
@@ -114,10 +114,12 @@ def _cornell_edits() -> list[tuple[str, dict]]:
     d["third-box"] = {"type": "cube", "to_world": mi.ScalarTransform4f().translate([0, 0.5, 0]).scale(0.1),
                       "bsdf": {"type": "ref", "id": "white"}}
     out.append(("an extra shape, existing material", d))
-    d = fresh()
-    d["blue"] = {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.1, 0.1, 0.6]}}
-    d["small-box"]["bsdf"] = {"type": "ref", "id": "blue"}
-    out.append(("an extra material of a present type", d))
+    for label, value in (("one more diffuse, values of its own", [0.1, 0.1, 0.6]),
+                         ("one more diffuse, the white's values", base["white"]["reflectance"]["value"])):
+        d = fresh()
+        d["extra"] = {"type": "diffuse", "reflectance": {"type": "rgb", "value": value}}
+        d["small-box"]["bsdf"] = {"type": "ref", "id": "extra"}
+        out.append((label, d))
     d = fresh()
     d["small-box"] = {"type": "sphere", "center": [0.3, -0.7, 0.4], "radius": 0.3, "bsdf": {"type": "ref", "id": "white"}}
     out.append(("a cube replaced by a sphere", d))

@@ -21,6 +21,7 @@ import torch
 from safetensors import safe_open
 from safetensors.torch import save_file
 
+from mcdenoise.io.safety import atomic_file
 from mcdenoise.models.weights import model_from_config
 from reconfigure_weights import apply_sets  # scripts/ is on the path when run as a script
 
@@ -79,11 +80,9 @@ def main() -> None:
     meta = {k: v for k, v in meta.items() if k != "step"}
     meta["model_config"] = json.dumps(cfg)
     meta["averaged_from"] = json.dumps({p: w for p, w in zip(a.inputs, weights)})
-    out = Path(a.out)
-    tmp = out.with_suffix(".tmp")
-    save_file(tensors, str(tmp), metadata=meta)
-    tmp.replace(out)  # atomic: a reader never sees half a file
-    print(f"wrote {out}: {' + '.join(f'{w:g} x {p}' for p, w in zip(a.inputs, weights))}")
+    with atomic_file(a.out) as tmp:  # a reader never sees half a file
+        save_file(tensors, str(tmp), metadata=meta)
+    print(f"wrote {a.out}: {' + '.join(f'{w:g} x {p}' for p, w in zip(a.inputs, weights))}")
 
 
 if __name__ == "__main__":

@@ -8,6 +8,7 @@ runs file, the calibration leg, the resume to a measured step count, and the pac
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -46,7 +47,6 @@ def test_gpu_campaign_script_renders_trains_resumes_and_packs(tmp_path: Path) ->
         assert int(lines[-1].split(",")[0]) > 3  # resumed past the 3-step calibration leg
     with tarfile.open(out / "logs.tgz") as t:  # the shards' recipes: campaign 16's settings reach them
         t.extractall(tmp_path / "logs", filter="data")
-    import json
     ds = json.loads((tmp_path / "logs" / "logs" / "ds" / "det_0" / "dataset.json").read_text())
     assert (ds["ref_spp"], ds["seed"], ds["world"]) == (32, 5, "detailed")
     cfg = (tmp_path / "x" / "lm" / "config.json").read_text()
