@@ -2,22 +2,29 @@
 the inputs there (how wskp's window-edge row on salle-de-bain was found, docs/TRAINING.md campaign 3).
 
     python scripts/worst_pixels.py wskp data/scene_inputs/salle-de-bain_128x128_d8_spp16_seed7 --spp 8
+    python scripts/worst_pixels.py layer-medium data/scene_inputs/bathroom_128x128_d8_spp16_seed7 --spp 4
+
+Pixel models run through ``mcdenoise.denoise`` on the pixel means; per-sample models read the
+folder's first ``--spp`` samples, as ``mcdenoise eval`` gives them.
 """
 from __future__ import annotations
 
 import argparse
 
 import numpy as np
+import torch
 
 import mcdenoise
 from mcdenoise.data.image_folder import ImageFolder
+from mcdenoise.data.tensors import image_batch
 from mcdenoise.data.stats import pixel_stats
 from mcdenoise.eval.metrics import relmse
+from mcdenoise.models.weights import load_denoiser
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("model", help="a shipped model name, weights file or run folder (pixel inputs)")
+    ap.add_argument("model", help="a shipped model name, weights file or run folder")
     ap.add_argument("folder", help="an image folder with samples and reference.exr")
     ap.add_argument("--spp", type=int, default=8)
     ap.add_argument("--top", type=int, default=10)
@@ -26,7 +33,13 @@ def main() -> None:
     ref = f.read_reference(["radiance"])["radiance"]
     smp = f.samples.read(["radiance", "albedo", "normal", "depth"], samples=list(range(a.spp)))
     m = {c: pixel_stats(v)[0] for c, v in smp.items()}
-    out = mcdenoise.denoise(m["radiance"], albedo=m["albedo"], normal=m["normal"], depth=m["depth"], model=a.model)
+    net, _ = load_denoiser(a.model)
+    if net.input_kind == "samples":
+        batch = image_batch(f, net.required_channels(), "samples", samples=slice(0, a.spp))
+        with torch.no_grad():
+            out = net(batch)[0].numpy()
+    else:
+        out = mcdenoise.denoise(m["radiance"], albedo=m["albedo"], normal=m["normal"], depth=m["depth"], model=a.model)
     # per-pixel relMSE (the metric's form and epsilon): the image's relMSE is the mean of this map
     err = ((out - ref) ** 2 / (ref ** 2 + 1e-2)).mean(0)
     print(f"relMSE {relmse(out, ref):.4g} (noisy {relmse(m['radiance'], ref):.4g}); "

@@ -65,6 +65,35 @@ def test_noisy_target_unbiasedness_flag_is_honest(name: str) -> None:
     assert same == loss.unbiased_for_noisy_target, (name, float((expected - grads[0]).abs().max()))
 
 
+def test_relmse_ref_loss_is_the_evaluation_metric() -> None:
+    """Catches `relmse_ref` drifting from the relMSE that eval reports (its denominator taken from
+    the prediction as `relmse` does, another eps, or a sum instead of a mean), which would make
+    it train toward something other than the figure it is meant to lower."""
+    from mcdenoise.eval.metrics import relmse
+
+    pred, target = _pair(2)
+    want = relmse(pred, target)  # (B, 3, H, W): the mean over images of each image's mean
+    got = get_loss("relmse_ref")(pred, target)
+    assert torch.allclose(got, torch.as_tensor(want, dtype=got.dtype), rtol=1e-12, atol=0)
+    assert not torch.allclose(get_loss("relmse")(pred, target), got, rtol=1e-3, atol=0)
+
+
+def test_loss_sum_is_the_weighted_sum_of_its_terms() -> None:
+    """Catches a sum that drops a term or its weight, marks itself unbiased when a term is not,
+    or accepts a misspelt term, a zero or negative weight instead of refusing it."""
+    pred, target = _pair(3)
+    mixed = get_loss("smape+0.1*relmse_ref")
+    want = get_loss("smape")(pred, target) + 0.1 * get_loss("relmse_ref")(pred, target)
+    assert torch.allclose(mixed(pred, target), want, rtol=1e-12, atol=0)
+    assert not mixed.unbiased_for_noisy_target
+    assert get_loss("l2+2*relmse").unbiased_for_noisy_target
+    for bad in ("smape+0.1*relmse_rf", "smape+0*relmse_ref", "smape+-1*relmse_ref", "smape+x*l1", "smape+"):
+        with pytest.raises(KeyError, match="unknown loss"):
+            get_loss(bad)
+    with pytest.raises(ConfigError, match="unknown loss"):
+        TrainConfig(model="wskp", data="x", loss="smape+0.1*relmse_rf").check()
+
+
 def test_noisy_target_refuses_biased_loss_in_one_line() -> None:
     """Catches `--target noisy` silently training towards a biased optimum."""
     cfg = TrainConfig(model="wskp", data="x", target="noisy", loss="smape")

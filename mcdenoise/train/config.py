@@ -171,8 +171,11 @@ class TrainConfig:
 
     def check(self) -> None:
         """Raise :class:`ConfigError` (one line) on an invalid combination."""
-        if self.loss is not None and self.loss not in LOSSES:
-            raise ConfigError(f"unknown loss {self.loss!r}; known: {', '.join(sorted(LOSSES))}")
+        if self.loss is not None:
+            try:
+                get_loss(self.loss)
+            except KeyError as e:
+                raise ConfigError(str(e.args[0])) from None
         if self.target not in ("reference", "noisy"):
             raise ConfigError(f"target must be 'reference' or 'noisy', got {self.target!r}")
         if self.target == "noisy" and self.loss is not None and not get_loss(self.loss).unbiased_for_noisy_target:

@@ -68,11 +68,31 @@ def register_loss(name: str, *, unbiased: bool, description: str) -> Callable[[C
 
 
 def get_loss(name: str) -> Loss:
-    """The registered loss ``name``; a KeyError lists the known names."""
-    try:
+    """The registered loss ``name``, or a weighted sum of registered losses written
+    ``"smape+0.1*relmse_ref"`` (terms ``NAME`` or ``WEIGHT*NAME``, weights > 0). A KeyError lists the
+    known names. A sum is unbiased for noisy targets only when every term is."""
+    if name in LOSSES:
         return LOSSES[name]
-    except KeyError:
-        raise KeyError(f"unknown loss {name!r}; known: {', '.join(sorted(LOSSES))}") from None
+    terms: list[tuple[float, Loss]] = []
+    for part in name.split("+") if "+" in name else []:
+        w_text, _, term = part.strip().rpartition("*")
+        try:
+            weight = float(w_text) if w_text else 1.0
+        except ValueError:
+            weight = float("nan")
+        if term not in LOSSES or not weight > 0 or weight == float("inf"):
+            terms = []
+            break
+        terms.append((weight, LOSSES[term]))
+    if not terms:
+        raise KeyError(f"unknown loss {name!r}; known: {', '.join(sorted(LOSSES))}, or a sum such as "
+                       "'smape+0.1*relmse_ref'") from None
+
+    def total(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+        return sum(w * loss.fn(pred, target) for w, loss in terms)  # type: ignore[return-value]
+
+    return Loss(name, total, all(loss.unbiased_for_noisy_target for _, loss in terms),
+                " + ".join(f"{w:g} x {loss.name}" for w, loss in terms))
 
 
 def _soft_tonemap(x: torch.Tensor) -> torch.Tensor:
@@ -120,3 +140,17 @@ def tonemapped_l2_loss(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor
 @register_loss("log_l1", unbiased=False, description="L1 between log(1 + x) of both")
 def log_l1_loss(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     return (_signed_log1p(pred) - _signed_log1p(target)).abs().mean()
+
+
+@register_loss(
+    "relmse_ref",
+    unbiased=False,
+    description="mean (pred - target)^2 / (target^2 + 0.01): the evaluation's relMSE itself, for clean references "
+    "(the target in the weight makes it biased for noisy targets)",
+)
+def relmse_ref_loss(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    # Unlike `relmse`, the weight comes from the reference: a dim reference pixel filled with light
+    # (a firefly splatted over its neighbours) costs its full relative error, and a bright
+    # reference where the prediction is near zero costs at most 1 per unit of relative error, so
+    # there is no 1 / 0.01 pole on highlights (TRAINING.md, "Losses").
+    return ((pred - target) ** 2 / (target.detach() ** 2 + RELMSE_EPS)).mean()
