@@ -123,8 +123,22 @@ def l2_loss(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     "so it stays unbiased for noisy targets (Noise2Noise)",
 )
 def relmse_loss(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-    weight = 1.0 / (pred.detach() ** 2 + RELMSE_EPS)
-    return ((pred - target) ** 2 * weight).mean()
+    return _relative_l2(pred, target, pred.detach())
+
+
+# Unlike `relmse`, the weight comes from the reference: a dim reference pixel filled with light (a
+# highlight's halo) costs its full relative error, and a bright reference where the prediction is
+# near zero costs at most 1 per unit of relative error, so there is no 1 / 0.01 pole on highlights.
+# It rewards darkness, though (TRAINING.md, "Losses"): use it as a small term of a sum.
+@register_loss("relmse_ref", unbiased=False, description="mean (pred - target)^2 / (target^2 + 0.01): the "
+               "evaluation's relMSE itself, for clean references (biased for noisy targets)")
+def relmse_ref_loss(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    return _relative_l2(pred, target, target.detach())
+
+
+def _relative_l2(pred: torch.Tensor, target: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
+    """mean (pred - target)^2 / (scale^2 + RELMSE_EPS); ``scale`` must carry no gradient."""
+    return ((pred - target) ** 2 / (scale ** 2 + RELMSE_EPS)).mean()
 
 
 @register_loss("smape", unbiased=False, description="mean |pred - target| / (|pred| + |target| + 0.01) (layer, WSKP)")
@@ -141,16 +155,3 @@ def tonemapped_l2_loss(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor
 def log_l1_loss(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     return (_signed_log1p(pred) - _signed_log1p(target)).abs().mean()
 
-
-@register_loss(
-    "relmse_ref",
-    unbiased=False,
-    description="mean (pred - target)^2 / (target^2 + 0.01): the evaluation's relMSE itself, for clean references "
-    "(the target in the weight makes it biased for noisy targets)",
-)
-def relmse_ref_loss(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-    # Unlike `relmse`, the weight comes from the reference: a dim reference pixel filled with light
-    # (a firefly splatted over its neighbours) costs its full relative error, and a bright
-    # reference where the prediction is near zero costs at most 1 per unit of relative error, so
-    # there is no 1 / 0.01 pole on highlights (TRAINING.md, "Losses").
-    return ((pred - target) ** 2 / (target.detach() ** 2 + RELMSE_EPS)).mean()
