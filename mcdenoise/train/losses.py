@@ -16,6 +16,7 @@ L1, SMAPE and the tonemapped/log losses are non-linear in ``t`` and converge to 
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Callable
 
@@ -73,26 +74,28 @@ def get_loss(name: str) -> Loss:
     known names. A sum is unbiased for noisy targets only when every term is."""
     if name in LOSSES:
         return LOSSES[name]
-    terms: list[tuple[float, Loss]] = []
-    for part in name.split("+") if "+" in name else []:
-        w_text, _, term = part.strip().rpartition("*")
-        try:
-            weight = float(w_text) if w_text else 1.0
-        except ValueError:
-            weight = float("nan")
-        if term not in LOSSES or not weight > 0 or weight == float("inf"):
-            terms = []
-            break
-        terms.append((weight, LOSSES[term]))
-    if not terms:
+    terms = [_sum_term(part) for part in name.split("+")] if "+" in name else [None]
+    if None in terms:
         raise KeyError(f"unknown loss {name!r}; known: {', '.join(sorted(LOSSES))}, or a sum such as "
-                       "'smape+0.1*relmse_ref'") from None
+                       "'smape+0.1*relmse_ref'")
+    parts: list[tuple[float, Loss]] = terms  # type: ignore[assignment]
 
     def total(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-        return sum(w * loss.fn(pred, target) for w, loss in terms)  # type: ignore[return-value]
+        return sum(w * loss.fn(pred, target) for w, loss in parts)  # type: ignore[return-value]
 
-    return Loss(name, total, all(loss.unbiased_for_noisy_target for _, loss in terms),
-                " + ".join(f"{w:g} x {loss.name}" for w, loss in terms))
+    return Loss(name, total, all(loss.unbiased_for_noisy_target for _, loss in parts),
+                " + ".join(f"{w:g} x {loss.name}" for w, loss in parts))
+
+
+def _sum_term(part: str) -> tuple[float, Loss] | None:
+    """``"0.1*relmse_ref"`` or ``"smape"`` as (weight, loss); None for an unknown loss or a weight
+    that is not a finite number > 0."""
+    w_text, _, term = part.strip().rpartition("*")
+    try:
+        weight = float(w_text) if w_text else 1.0
+    except ValueError:
+        return None
+    return (weight, LOSSES[term]) if term in LOSSES and 0 < weight < math.inf else None
 
 
 def _soft_tonemap(x: torch.Tensor) -> torch.Tensor:
@@ -154,4 +157,3 @@ def tonemapped_l2_loss(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor
 @register_loss("log_l1", unbiased=False, description="L1 between log(1 + x) of both")
 def log_l1_loss(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     return (_signed_log1p(pred) - _signed_log1p(target)).abs().mean()
-
