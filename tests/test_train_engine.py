@@ -27,19 +27,25 @@ def _pair(seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
     return pred, target
 
 
+def _guide(loss, like: torch.Tensor) -> torch.Tensor | None:
+    """A positive input-side guide for a guided loss (None otherwise)."""
+    return like.detach().abs() + 0.05 if loss.guided else None
+
+
 @pytest.mark.parametrize("name", sorted(LOSSES))
 def test_loss_zero_at_target_positive_elsewhere_finite_gradient(name: str) -> None:
     """Catches a loss with an offset, a sign error, or a NaN gradient for negative predictions
     (x / (1 + x) and log(1 + x) have poles at x = -1)."""
     loss = get_loss(name)
     pred, target = _pair()
-    assert float(loss(target.clone(), target)) == 0.0
+    guide = _guide(loss, pred)
+    assert float(loss(target.clone(), target, guide)) == 0.0
     pred = pred.clone().requires_grad_(True)
     bad = pred.detach().clone()
     bad[0, 0, 0, 0] = -1.0  # at the pole of the naive tonemap
     bad.requires_grad_(True)
     for p in (pred, bad):
-        value = loss(p, target)
+        value = loss(p, target, guide)
         assert value.ndim == 0 and float(value.detach()) > 0
         (g,) = torch.autograd.grad(value, p)
         assert torch.isfinite(g).all()
@@ -54,11 +60,12 @@ def test_noisy_target_unbiasedness_flag_is_honest(name: str) -> None:
     denominator, for one), and a biased mark on a loss that would be fine."""
     loss = get_loss(name)
     pred, clean = _pair(1)
+    guide = _guide(loss, pred)  # from the input: the same whatever the target
     noise = torch.rand_like(clean) * clean  # keeps targets >= 0, large enough to cross pred
     grads = []
     for t in (clean, clean + noise, clean - noise):
         p = pred.clone().requires_grad_(True)
-        (g,) = torch.autograd.grad(loss(p, t), p)
+        (g,) = torch.autograd.grad(loss(p, t, guide), p)
         grads.append(g)
     expected = (grads[1] + grads[2]) / 2
     same = torch.allclose(expected, grads[0], rtol=1e-9, atol=1e-12)
@@ -92,6 +99,64 @@ def test_loss_sum_is_the_weighted_sum_of_its_terms() -> None:
             get_loss(bad)
     with pytest.raises(ConfigError, match="unknown loss"):
         TrainConfig(model="wskp", data="x", loss="smape+0.1*relmse_rf").check()
+
+
+def test_relmse_in_optimum_is_the_conditional_mean_and_relmse_ref_is_darker() -> None:
+    """Catches a guided loss whose weight leaks the target (its best constant answer to an uncertain
+    pixel would then sit below the mean: the dark bias of `relmse_ref`), and checks that
+    `relmse_ref` keeps that bias, which is why the guided loss exists. One input pixel whose
+    reference is 0.1 or 10 with equal odds: the expected gradient at the mean must vanish."""
+    targets = torch.tensor([0.1, 10.0], dtype=torch.float64).view(2, 1, 1, 1).expand(2, 3, 4, 4)
+    guide = torch.full_like(targets, 1.0)  # the same input behind both outcomes, within 10x of both
+    mean = targets.mean(0, keepdim=True).expand_as(targets)
+    for name, unbiased in (("relmse_in", True), ("relmse_ref", False)):
+        x = mean.clone().requires_grad_(True)
+        (g,) = torch.autograd.grad(get_loss(name)(x, targets, guide), x)
+        expected = g.sum(0)  # over the two equally likely outcomes of each pixel
+        if unbiased:
+            assert float(expected.abs().max()) < 1e-12, name
+        else:  # a positive expected gradient at the mean: the optimum lies below it
+            assert float(expected.min()) > 1e-4, name
+
+
+def test_input_guide_is_a_firefly_proof_local_mean_without_gradient() -> None:
+    """Catches a guide that is not the sample mean (a constant image must give itself), that
+    spreads one firefly or one highlight pixel onto its neighbours (a box blur would, lowering the
+    weight exactly where halos are), that erases a one-pixel light (a median alone would, giving it
+    the weight 1 / 0.01 of black: campaign 18's first try, loss ~3500), that carries a gradient, and a guided loss called without
+    its guide or with a guide of the wrong shape."""
+    from mcdenoise.train.losses import input_guide
+
+    samples = torch.full((1, 4, 3, 6, 6), 0.2, dtype=torch.float64)
+    samples[0, :, 1] = 0.4  # green twice as bright: per channel
+    clean = samples.mean(1).float()
+    assert torch.allclose(input_guide(samples), clean)
+    samples[0, 0, :, 2, 3] = 1000.0  # one firefly in one sample
+    guide = input_guide(samples.requires_grad_(True))
+    want = clean.clone()
+    want[..., 2, 3] = samples.detach()[:, :, :, 2, 3].mean(1).float()  # only the firefly's own pixel
+    assert torch.allclose(guide, want, rtol=1e-6, atol=0) and not guide.requires_grad
+    pixels = torch.zeros((1, 3, 5, 5))
+    pixels[..., 0, 0] = 50.0  # a one-pixel light in a corner (replicate border): its own, not its neighbours'
+    assert torch.equal(input_guide(pixels), pixels)
+    with pytest.raises(ValueError, match="guide"):
+        get_loss("relmse_in")(pixels, pixels)
+    with pytest.raises(ValueError, match="guide"):
+        get_loss("smape+0.1*relmse_in")(pixels, pixels, pixels[:, :1])
+    assert get_loss("smape+0.1*relmse_in").guided and not get_loss("smape").guided
+    # A light every sample missed (guide 0, reference 1e4) costs about GUIDE_RATIO^2 at black, not 1e10.
+    lit = torch.full((1, 3, 2, 2), 1e4)
+    assert float(get_loss("relmse_in")(torch.zeros_like(lit), lit, torch.zeros_like(lit))) == pytest.approx(100.0, rel=1e-6)
+
+
+def test_guided_loss_refused_for_models_it_cannot_weigh() -> None:
+    """Catches KPCN's per-branch phase (log/albedo domains) silently weighted by radiance."""
+    from mcdenoise.models.registry import build_model
+    from mcdenoise.train.trainer import Trainer
+
+    cfg = TrainConfig(model="kpcn", data="x", loss="relmse_in").resolved(build_model("kpcn").input_kind)
+    with pytest.raises(ConfigError, match="relmse_in"):
+        Trainer(build_model("kpcn"), cfg, torch.device("cpu"))
 
 
 def test_noisy_target_refuses_biased_loss_in_one_line() -> None:

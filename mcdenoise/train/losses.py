@@ -12,6 +12,12 @@ loss is quadratic in ``t`` with a weight that does not depend on ``t``. L2 quali
 qualifies only with its denominator taken from the (detached) prediction instead of the target.
 L1, SMAPE and the tonemapped/log losses are non-linear in ``t`` and converge to something else
 (L1 to the median, for instance), so training with ``target="noisy"`` refuses them.
+
+A *guided* loss also takes ``guide (B, 3, H, W)``, a brightness estimate made from the noisy input
+alone (:func:`input_guide`). A weight that depends on the input but never on the target leaves the
+loss's optimum at the conditional mean ``E[reference | input]``, so it can weight dim regions the way
+the evaluation's relMSE does without rewarding a darker output (``relmse_ref``, whose weight comes from
+the target, does).
 """
 
 from __future__ import annotations
@@ -21,8 +27,9 @@ from dataclasses import dataclass
 from typing import Callable
 
 import torch
+import torch.nn.functional as F
 
-__all__ = ["Loss", "LOSSES", "get_loss", "register_loss", "RELMSE_EPS", "SMAPE_EPS"]
+__all__ = ["Loss", "LOSSES", "get_loss", "input_guide", "register_loss", "RELMSE_EPS", "SMAPE_EPS"]
 
 #: Denominator offset of relMSE (as in :func:`mcdenoise.eval.metrics.relmse`).
 RELMSE_EPS = 1e-2
@@ -36,33 +43,41 @@ class Loss:
 
     Attributes:
         name: registry key (CLI ``--loss``).
-        fn: ``(pred, target) -> scalar`` mean over every element.
+        fn: ``(pred, target, guide) -> scalar`` mean over every element (``guide`` is None for an
+            unguided loss).
         unbiased_for_noisy_target: True when training against an independent noisy render gives,
             in expectation, the same gradient as the clean reference (see module docstring).
         description: one line for ``--help`` and docs.
+        guided: True when the loss needs ``guide``, the noisy input's :func:`input_guide`.
     """
 
     name: str
-    fn: Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
+    fn: Callable[[torch.Tensor, torch.Tensor, torch.Tensor | None], torch.Tensor]
     unbiased_for_noisy_target: bool
     description: str
+    guided: bool = False
 
-    def __call__(self, pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    def __call__(self, pred: torch.Tensor, target: torch.Tensor, guide: torch.Tensor | None = None) -> torch.Tensor:
         if pred.shape != target.shape:
             raise ValueError(f"loss {self.name}: prediction {tuple(pred.shape)} vs target {tuple(target.shape)}")
-        return self.fn(pred, target)
+        if self.guided and (guide is None or guide.shape != pred.shape):
+            got = "none" if guide is None else str(tuple(guide.shape))
+            raise ValueError(f"loss {self.name}: needs the input's guide of shape {tuple(pred.shape)}, got {got}")
+        return self.fn(pred, target, guide if self.guided else None)
 
 
 LOSSES: dict[str, Loss] = {}
 
 
-def register_loss(name: str, *, unbiased: bool, description: str) -> Callable[[Callable], Callable]:
-    """Decorator adding ``fn(pred, target) -> scalar`` to :data:`LOSSES` under ``name``."""
+def register_loss(name: str, *, unbiased: bool, description: str, guided: bool = False) -> Callable[[Callable], Callable]:
+    """Decorator adding ``fn(pred, target) -> scalar`` (``fn(pred, target, guide)`` when ``guided``)
+    to :data:`LOSSES` under ``name``."""
 
-    def deco(fn: Callable[[torch.Tensor, torch.Tensor], torch.Tensor]) -> Callable:
+    def deco(fn: Callable[..., torch.Tensor]) -> Callable:
         if name in LOSSES:
             raise ValueError(f"loss {name!r} registered twice")
-        LOSSES[name] = Loss(name, fn, unbiased, description)
+        call = fn if guided else (lambda pred, target, guide: fn(pred, target))
+        LOSSES[name] = Loss(name, call, unbiased, description, guided)
         return fn
 
     return deco
@@ -80,11 +95,11 @@ def get_loss(name: str) -> Loss:
                        "'smape+0.1*relmse_ref'")
     parts: list[tuple[float, Loss]] = terms  # type: ignore[assignment]
 
-    def total(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-        return sum(w * loss.fn(pred, target) for w, loss in parts)  # type: ignore[return-value]
+    def total(pred: torch.Tensor, target: torch.Tensor, guide: torch.Tensor | None) -> torch.Tensor:
+        return sum(w * loss.fn(pred, target, guide) for w, loss in parts)  # type: ignore[return-value]
 
     return Loss(name, total, all(loss.unbiased_for_noisy_target for _, loss in parts),
-                " + ".join(f"{w:g} x {loss.name}" for w, loss in parts))
+                " + ".join(f"{w:g} x {loss.name}" for w, loss in parts), any(loss.guided for _, loss in parts))
 
 
 def _sum_term(part: str) -> tuple[float, Loss] | None:
@@ -137,6 +152,41 @@ def relmse_loss(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
                "evaluation's relMSE itself, for clean references (biased for noisy targets)")
 def relmse_ref_loss(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     return _relative_l2(pred, target, target.detach())
+
+
+#: A guided loss's weight uses max(guide, target / GUIDE_RATIO) where the target is that much brighter.
+GUIDE_RATIO = 10.0
+
+
+# The weight comes from the input, so a dim pixel the model fills with a highlight's light costs its
+# full relative error (as in `relmse_ref`) while the optimum stays E[target | input], not below it.
+# The one exception is a target over GUIDE_RATIO x the guide (a light's partial pixel that every
+# sample missed at 2 spp, radiance up to 1e5): its weight comes from the target instead, so that it
+# costs at most ~GUIDE_RATIO^2 rather than (1e3)^2 / 0.01 and drowning every other pixel
+# (campaign 18's first tries); a perfect prediction still costs nothing.
+@register_loss("relmse_in", unbiased=False, guided=True, description="mean (pred - target)^2 / (max(guide, target / 10)^2 "
+               "+ 0.01), guide from the noisy input (max of its mean and 3x3 median): relMSE's weight without its "
+               "reward for darkness")
+def relmse_in_loss(pred: torch.Tensor, target: torch.Tensor, guide: torch.Tensor) -> torch.Tensor:
+    return _relative_l2(pred, target, torch.maximum(guide, target / GUIDE_RATIO).detach())
+
+
+def input_guide(radiance: torch.Tensor) -> torch.Tensor:
+    """The guided losses' brightness estimate, per channel and without gradient: the larger of each
+    pixel's own sample mean and the 3x3 median (replicate border) of those means. ``radiance``:
+    ``(B, S, 3, H, W)`` samples or ``(B, 3, H, W)``; returns ``(B, 3, H, W)`` float32.
+
+    The median keeps a firefly or a highlight from spreading its brightness (a small weight) onto
+    the dim pixels around it, which are where halos need charging; the pixel's own mean keeps a
+    light one or two pixels wide, which the median alone would erase, from weighing 1 / 0.01."""
+    x = radiance.detach().float()
+    if x.dim() == 5:
+        x = x.mean(dim=1)
+    if x.dim() != 4:
+        raise ValueError(f"input_guide: radiance must be (B, S, C, H, W) or (B, C, H, W), got {tuple(radiance.shape)}")
+    b, c, h, w = x.shape
+    patches = F.unfold(F.pad(x, (1, 1, 1, 1), mode="replicate"), kernel_size=3)  # (B, C*9, H*W)
+    return torch.maximum(x, patches.view(b, c, 9, h * w).median(dim=2).values.view(b, c, h, w))
 
 
 def _relative_l2(pred: torch.Tensor, target: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:

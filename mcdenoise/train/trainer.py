@@ -14,9 +14,9 @@ import torch.distributed as dist
 from torch import nn
 
 from mcdenoise.models.registry import Denoiser
-from mcdenoise.train.config import TrainConfig
+from mcdenoise.train.config import ConfigError, TrainConfig
 from mcdenoise.train.data import DataConfig
-from mcdenoise.train.losses import get_loss
+from mcdenoise.train.losses import get_loss, input_guide
 from mcdenoise.train.optim import StepOutcome, apply_gradients, build_optimizer, lr_at
 from mcdenoise.train.runlog import VAL_METRICS
 
@@ -77,6 +77,11 @@ class Trainer:
         self.optimizer = build_optimizer(model, cfg)
         self.params = [p for p in model.parameters() if p.requires_grad]
         self.branch_steps = int(round((cfg.branch_fraction or 0.0) * cfg.steps)) if has_branches(model) else 0
+        if self.loss.guided and (self.branch_steps or "radiance" not in model.required_channels()):
+            # The guide is a radiance estimate: it matches neither KPCN's branch domains nor a model
+            # that never reads radiance.
+            raise ConfigError(f"loss {self.loss.name!r} is weighted by the noisy radiance: it needs a model that reads "
+                             "'radiance' and no per-branch phase (branch_fraction 0)")
         self.distributed = distributed
         self._buffers_to_guard = list(model.buffers())
 
@@ -91,10 +96,12 @@ class Trainer:
         with ctx:
             out = self.objective(batch, branches)
         if not branches:
-            loss = self.loss(out["image"].float(), batch["target"])
+            guide = input_guide(batch["radiance"]) if self.loss.guided else None
+            loss = self.loss(out["image"].float(), batch["target"], guide)
             if len(out) > 1:  # forward_aux's extra outputs, each weighted as the model says
                 weights = self.model.aux_loss_weights()  # type: ignore[operator]
-                loss = loss + sum(weights[n] * self.loss(out[n].float(), batch["target"]) for n in sorted(out) if n != "image")
+                loss = loss + sum(weights[n] * self.loss(out[n].float(), batch["target"], guide)
+                                  for n in sorted(out) if n != "image")
             return loss
         ref = {"radiance": batch["target"]}
         ref.update({k.split(":", 1)[1]: v for k, v in batch.items() if k.startswith("target:")})
