@@ -5,6 +5,8 @@ bright into dim regions, which relMSE (weighting dark pixels most) punishes and 
 
     python scripts/brightness_by_quartile.py data/scene_inputs --models layer-medium runs/lm16a_k4.safetensors --spp 4
 
+A spec ``oidn-high`` (or ``oidn-fast``, ``oidn-balanced``) runs OIDN 2.5.1 instead of a model.
+
 ``data/scene_inputs`` is where `mcdenoise eval --scenes` keeps the third-party scenes' inputs
 (every image folder under a root is read, as eval reads a folder of image folders).
 """
@@ -15,7 +17,7 @@ import argparse
 import numpy as np
 
 from mcdenoise.eval.images import collect_images
-from mcdenoise.eval.methods import Inputs, ModelMethod
+from mcdenoise.eval.methods import Inputs, ModelMethod, OIDNMethod
 from mcdenoise.models.weights import load_denoiser
 
 
@@ -39,6 +41,9 @@ def main() -> None:
     a = ap.parse_args()
     methods = []
     for spec in a.models:
+        if spec.startswith("oidn-"):
+            methods.append(OIDNMethod(spec[len("oidn-"):]))
+            continue
         m, info = load_denoiser(spec)
         methods.append(ModelMethod(info.get("label", spec), m, info, "cpu"))
     images = [e.folder for e in collect_images(a.roots, split="val")[0]]
