@@ -155,9 +155,7 @@ def relmse_ref_loss(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
 
 
 #: A guided loss's weight uses max(guide, target / GUIDE_RATIO) where the target is that much brighter.
-GUIDE_RATIO = 30.0
-#: The guide's floor: the 7x7 box mean of the noisy means over GUIDE_BOX_DIVISOR.
-GUIDE_BOX_DIVISOR = 8.0
+GUIDE_RATIO = 10.0
 
 
 # The weight comes from the input, so a dim pixel the model fills with a highlight's light costs its
@@ -165,26 +163,22 @@ GUIDE_BOX_DIVISOR = 8.0
 # The one exception is a target over GUIDE_RATIO x the guide (a light's partial pixel that every
 # sample missed at 2 spp, radiance up to 1e5): its weight comes from the target instead, so that it
 # costs at most ~GUIDE_RATIO^2 rather than (1e3)^2 / 0.01 and drowning every other pixel
-# (campaign 18's first tries); a perfect prediction still costs nothing. The exception's weight is
-# biased low, so the guide's box floor keeps it rare (TRAINING.md, "Losses").
-@register_loss("relmse_in", unbiased=False, guided=True, description="mean (pred - target)^2 / (max(guide, target / 30)^2 "
-               "+ 0.01), guide from the noisy input (input_guide): relMSE's weight without its reward for darkness")
+# (campaign 18's first tries); a perfect prediction still costs nothing.
+@register_loss("relmse_in", unbiased=False, guided=True, description=f"mean (pred - target)^2 / (max(guide, target / {GUIDE_RATIO:g})^2 "
+               "+ 0.01), guide from the noisy input (max of its mean and 3x3 median): relMSE's weight without its "
+               "reward for darkness")
 def relmse_in_loss(pred: torch.Tensor, target: torch.Tensor, guide: torch.Tensor) -> torch.Tensor:
     return _relative_l2(pred, target, torch.maximum(guide, target / GUIDE_RATIO).detach())
 
 
 def input_guide(radiance: torch.Tensor) -> torch.Tensor:
-    """The guided losses' brightness estimate, per channel and without gradient: the largest of each
-    pixel's own sample mean, the 3x3 median of those means and their 7x7 box mean over
-    :data:`GUIDE_BOX_DIVISOR` (replicate borders). ``radiance``: ``(B, S, 3, H, W)`` samples or
-    ``(B, 3, H, W)``; returns ``(B, 3, H, W)`` float32.
+    """The guided losses' brightness estimate, per channel and without gradient: the larger of each
+    pixel's own sample mean and the 3x3 median (replicate border) of those means. ``radiance``:
+    ``(B, S, 3, H, W)`` samples or ``(B, 3, H, W)``; returns ``(B, 3, H, W)`` float32.
 
     The median keeps a firefly or a highlight from spreading its brightness (a small weight) onto
     the dim pixels around it, which are where halos need charging; the pixel's own mean keeps a
-    light one or two pixels wide, which the median alone would erase, from weighing 1 / 0.01; the
-    divided box mean gives sparse regions (a few lit samples among black ones at 2-4 spp, where the
-    median is 0) a weight of their local brightness's order, and spreads a highlight's light
-    into its surroundings only diluted 8 x 49 times."""
+    light one or two pixels wide, which the median alone would erase, from weighing 1 / 0.01."""
     x = radiance.detach().float()
     if x.dim() == 5:
         x = x.mean(dim=1)
@@ -192,9 +186,7 @@ def input_guide(radiance: torch.Tensor) -> torch.Tensor:
         raise ValueError(f"input_guide: radiance must be (B, S, C, H, W) or (B, C, H, W), got {tuple(radiance.shape)}")
     b, c, h, w = x.shape
     patches = F.unfold(F.pad(x, (1, 1, 1, 1), mode="replicate"), kernel_size=3)  # (B, C*9, H*W)
-    median = patches.view(b, c, 9, h * w).median(dim=2).values.view(b, c, h, w)
-    box = F.avg_pool2d(F.pad(x, (3, 3, 3, 3), mode="replicate"), kernel_size=7, stride=1)
-    return torch.maximum(torch.maximum(x, median), box / GUIDE_BOX_DIVISOR)
+    return torch.maximum(x, patches.view(b, c, 9, h * w).median(dim=2).values.view(b, c, h, w))
 
 
 def _relative_l2(pred: torch.Tensor, target: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
