@@ -39,7 +39,7 @@ def main() -> None:
         with torch.no_grad():
             out = net(batch)[0].numpy()
     else:
-        out = mcdenoise.denoise(m["radiance"], albedo=m["albedo"], normal=m["normal"], depth=m["depth"], model=a.model)
+        out = mcdenoise.denoise(m["radiance"], albedo=m["albedo"], normal=m["normal"], depth=m["depth"], model=net)
     # per-pixel relMSE (the metric's form and epsilon): the image's relMSE is the mean of this map
     err = ((out - ref) ** 2 / (ref ** 2 + 1e-2)).mean(0)
     print(f"relMSE {relmse(out, ref):.4g} (noisy {relmse(m['radiance'], ref):.4g}); "

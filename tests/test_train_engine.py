@@ -14,7 +14,7 @@ import torch
 from mcdenoise.models.registry import build_model, synthetic_batch
 from mcdenoise.train.checkpoint import latest_checkpoint, load_checkpoint, prune_checkpoints, save_checkpoint
 from mcdenoise.train.config import ConfigError, TrainConfig, check_resume_config
-from mcdenoise.train.losses import LOSSES, get_loss
+from mcdenoise.train.losses import LOSSES, Loss, get_loss
 from mcdenoise.train.trainer import Trainer
 from mcdenoise.train.optim import lr_at
 from mcdenoise.train.runlog import COLUMNS, MetricsLog, plot_loss, read_metrics
@@ -27,7 +27,7 @@ def _pair(seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
     return pred, target
 
 
-def _guide(loss, like: torch.Tensor) -> torch.Tensor | None:
+def _guide(loss: Loss, like: torch.Tensor) -> torch.Tensor | None:
     """A positive input-side guide for a guided loss (None otherwise)."""
     return like.detach().abs() + 0.05 if loss.guided else None
 
@@ -123,8 +123,8 @@ def test_input_guide_is_a_firefly_proof_local_mean_without_gradient() -> None:
     """Catches a guide that is not the sample mean (a constant image must give itself), that
     spreads one firefly or one highlight pixel onto its neighbours (a box blur would, lowering the
     weight exactly where halos are), that erases a one-pixel light (a median alone would, giving it
-    the weight 1 / 0.01 of black: campaign 18's first try, loss ~3500), that carries a gradient, and a guided loss called without
-    its guide or with a guide of the wrong shape."""
+    the weight 1 / 0.01 of black: campaign 18's first try, loss ~3500), that carries a gradient,
+    and a guided loss called without its guide or with a guide of the wrong shape."""
     from mcdenoise.train.losses import input_guide
 
     samples = torch.full((1, 4, 3, 6, 6), 0.2, dtype=torch.float64)

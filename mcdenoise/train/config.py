@@ -171,14 +171,15 @@ class TrainConfig:
 
     def check(self) -> None:
         """Raise :class:`ConfigError` (one line) on an invalid combination."""
+        loss = None
         if self.loss is not None:
             try:
-                get_loss(self.loss)
+                loss = get_loss(self.loss)
             except KeyError as e:
                 raise ConfigError(str(e.args[0])) from None
         if self.target not in ("reference", "noisy"):
             raise ConfigError(f"target must be 'reference' or 'noisy', got {self.target!r}")
-        if self.target == "noisy" and self.loss is not None and not get_loss(self.loss).unbiased_for_noisy_target:
+        if self.target == "noisy" and loss is not None and not loss.unbiased_for_noisy_target:
             ok = ", ".join(sorted(n for n, l in LOSSES.items() if l.unbiased_for_noisy_target))
             raise ConfigError(f"loss {self.loss!r} is biased for noisy targets; use one of: {ok}")
         if self.target == "noisy" and self.branch_fraction:
