@@ -61,6 +61,8 @@ def test_noisy_target_unbiasedness_flag_is_honest(name: str) -> None:
     loss = get_loss(name)
     pred, clean = _pair(1)
     guide = _guide(loss, pred)  # from the input: the same whatever the target
+    if guide is not None:  # dim enough that every exception ratio (10, 100) fires on some targets
+        guide = guide * 1e-3
     noise = torch.rand_like(clean) * clean  # keeps targets >= 0, large enough to cross pred
     grads = []
     for t in (clean, clean + noise, clean - noise):
@@ -117,6 +119,29 @@ def test_relmse_in_optimum_is_the_conditional_mean_and_relmse_ref_is_darker() ->
             assert float(expected.abs().max()) < 1e-12, name
         else:  # a positive expected gradient at the mean: the optimum lies below it
             assert float(expected.min()) > 1e-4, name
+
+
+def test_relmse_in_exception_is_dark_where_it_fires_and_the_wide_ratio_fires_later() -> None:
+    """Catches an exception ratio that is not the one documented (the wide loss must stay unbiased
+    where the target is 20x the guide, and `relmse_in` must not: its weight then comes from the
+    target, which is the dark bias campaign 19 measures), and a wide exception that no longer caps
+    a light every sample missed (its cost must be WIDE_GUIDE_RATIO^2, not 1e10)."""
+    from mcdenoise.train.losses import WIDE_GUIDE_RATIO
+
+    targets = torch.tensor([0.1, 20.0], dtype=torch.float64).view(2, 1, 1, 1).expand(2, 3, 4, 4)
+    guide = torch.full_like(targets, 1.0)  # the brighter outcome is 20x the guide
+    mean = targets.mean(0, keepdim=True).expand_as(targets)
+    for name, unbiased in (("relmse_in_wide", True), ("relmse_in", False)):
+        x = mean.clone().requires_grad_(True)
+        (g,) = torch.autograd.grad(get_loss(name)(x, targets, guide), x)
+        expected = g.sum(0)
+        if unbiased:
+            assert float(expected.abs().max()) < 1e-12, name
+        else:
+            assert float(expected.min()) > 1e-4, name
+    lit = torch.full((1, 3, 2, 2), 1e6)
+    cost = float(get_loss("relmse_in_wide")(torch.zeros_like(lit), lit, torch.zeros_like(lit)))
+    assert cost == pytest.approx(WIDE_GUIDE_RATIO ** 2, rel=1e-6)
 
 
 def test_input_guide_is_a_firefly_proof_local_mean_without_gradient() -> None:
