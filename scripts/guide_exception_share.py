@@ -17,7 +17,7 @@ import torch.nn.functional as F
 from mcdenoise.models.registry import build_model
 from mcdenoise.train.config import TrainConfig
 from mcdenoise.train.data import batch_source
-from mcdenoise.train.losses import GUIDE_RATIO, RELMSE_EPS, WIDE_GUIDE_RATIO, input_guide
+from mcdenoise.train.losses import GUIDE_RATIO, RELMSE_EPS, WIDE_GUIDE_RATIO, guided_scale, input_guide
 from mcdenoise.train.trainer import data_config
 
 
@@ -52,7 +52,7 @@ def main() -> None:
         target = b["target"]
         for name, (guide, ratio) in variants(b["radiance"]).items():
             hit = target > ratio * guide
-            moved = (torch.maximum(guide, target / ratio) ** 2 + RELMSE_EPS) > 2 * (guide ** 2 + RELMSE_EPS)
+            moved = (guided_scale(guide, target, ratio) ** 2 + RELMSE_EPS) > 2 * (guide ** 2 + RELMSE_EPS)
             shares.setdefault(name, []).append((float(hit.float().mean()), float((target * hit).sum() / target.sum()),
                                                 float(moved.float().mean())))
     print(f"{a.batches} batches of 8 crops (96 px) at {a.spp[0]}-{a.spp[1]} spp; share of pixels / of the reference's light"

@@ -29,7 +29,7 @@ from typing import Callable
 import torch
 import torch.nn.functional as F
 
-__all__ = ["Loss", "LOSSES", "get_loss", "input_guide", "register_loss", "RELMSE_EPS", "SMAPE_EPS"]
+__all__ = ["Loss", "LOSSES", "get_loss", "guided_scale", "input_guide", "register_loss", "RELMSE_EPS", "SMAPE_EPS"]
 
 #: Denominator offset of relMSE (as in :func:`mcdenoise.eval.metrics.relmse`).
 RELMSE_EPS = 1e-2
@@ -173,13 +173,19 @@ WIDE_GUIDE_RATIO = 100.0
                "+ 0.01), guide from the noisy input (max of its mean and 3x3 median): relMSE's weight without its "
                "reward for darkness")
 def relmse_in_loss(pred: torch.Tensor, target: torch.Tensor, guide: torch.Tensor) -> torch.Tensor:
-    return _relative_l2(pred, target, torch.maximum(guide, target / GUIDE_RATIO).detach())
+    return _relative_l2(pred, target, guided_scale(guide, target, GUIDE_RATIO))
 
 
 @register_loss("relmse_in_wide", unbiased=False, guided=True, description=f"relmse_in with the exception at target > "
                f"{WIDE_GUIDE_RATIO:g} x guide: less dark bias, larger single-pixel costs")
 def relmse_in_wide_loss(pred: torch.Tensor, target: torch.Tensor, guide: torch.Tensor) -> torch.Tensor:
-    return _relative_l2(pred, target, torch.maximum(guide, target / WIDE_GUIDE_RATIO).detach())
+    return _relative_l2(pred, target, guided_scale(guide, target, WIDE_GUIDE_RATIO))
+
+
+def guided_scale(guide: torch.Tensor, target: torch.Tensor, ratio: float) -> torch.Tensor:
+    """The guided losses' relMSE denominator scale, without gradient: the guide, or ``target / ratio``
+    where the target is over ``ratio`` x the guide (the exception above). ``(B, 3, H, W)`` each."""
+    return torch.maximum(guide, target / ratio).detach()
 
 
 def input_guide(radiance: torch.Tensor) -> torch.Tensor:
