@@ -47,6 +47,8 @@ def main() -> None:
     ap.add_argument("--spp", type=int, default=4)
     ap.add_argument("--summary", action="store_true", help="end with each model's means over the images")
     ap.add_argument("--floor", type=float, default=0.93, help="count images whose middle quartiles fall below this")
+    ap.add_argument("--self-ensemble", action="store_true",
+                    help="run each model as a self-ensemble of 8 orientations (labelled +se), as eval --self-ensemble")
     a = ap.parse_args()
     methods = []
     for spec in a.models:
@@ -54,7 +56,8 @@ def main() -> None:
             methods.append(OIDNMethod(spec[len("oidn-"):]))
             continue
         m, info = load_denoiser(spec)
-        methods.append(ModelMethod(info.get("label", spec), m, info, "cpu"))
+        label = info.get("label", spec) + ("+se" if a.self_ensemble else "")
+        methods.append(ModelMethod(label, m, info, "cpu", self_ensemble=a.self_ensemble))
     images = [e.folder for e in collect_images(a.roots, split="val")[0]]
     print(f"{a.spp} spp; per model: output/reference mean in the reference's luminance quartiles, dim to bright")
     table: dict[str, list[list[float]]] = {meth.name: [] for meth in methods}

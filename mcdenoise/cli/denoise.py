@@ -44,6 +44,9 @@ def add_parser(p: argparse.ArgumentParser) -> None:
                         "eval defaults to float32, so its figures are the same on every CPU")
     p.add_argument("--tile", default="auto", help="tile side in pixels, or auto (sized from --max-memory)")
     p.add_argument("--max-memory", default="4G", help="memory budget of one tile, e.g. 4G or 512M (default 4G)")
+    p.add_argument("--self-ensemble", action="store_true",
+                   help="run the model on the 8 flips and quarter turns of the image and keep the per-pixel median: "
+                        "8x the time, fewer exploded highlights (docs/DENOISE.md)")
     p.add_argument("--preview", type=Path, default=None, help="also write an 8-bit sRGB PNG preview here")
     p.add_argument("--force", action="store_true", help="replace an existing OUTPUT")
     p.add_argument("--replace-combined", action="store_true",
@@ -175,12 +178,16 @@ def _denoise(args: argparse.Namespace, src: Path, tile: int | str, budget: int) 
           f"{info['precision']})")
     kind = "per-sample" if model.input_kind == "samples" else "per-pixel"
     print(f"channels: {', '.join(info['channels'])} ({kind})")
-    out, run = denoise_inputs(inputs, model, device=device, tile=tile, max_memory=budget)
-    print(f"ran {describe_plan(run.plan)} on {run.device}")
+    out, run = denoise_inputs(inputs, model, device=device, tile=tile, max_memory=budget,
+                              self_ensemble=args.self_ensemble)
+    turns = f", in each of {run.orientations} orientations (per-pixel median)" if run.orientations > 1 else ""
+    print(f"ran {describe_plan(run.plan)} on {run.device}{turns}")
     if run.consistency:
         print(f"consistency: {run.consistency}")
     attrs = {"mcdenoise_model": str(info["name"]), "mcdenoise_weights": str(info["weights"]),
              "mcdenoise_input": str(src)}
+    if run.orientations > 1:  # says how the pixels were made: a re-run without the flag differs
+        attrs["mcdenoise_self_ensemble"] = f"{run.orientations} orientations, per-pixel median"
     targets = [args.output] + ([args.preview] if args.preview is not None else [])
     for path in targets:
         remove_stale_temps(path)  # temporaries of a killed earlier run

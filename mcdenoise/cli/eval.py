@@ -55,6 +55,9 @@ def add_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--precision", nargs="+", default=["float32"], choices=("float32", "bfloat16", "auto"),
                    help="run every model in each: float32 (default, unlike denoise's auto: eval's figures must be the "
                         "same on every CPU), bfloat16 (convolution trunks; rows labelled +bf16), auto (as denoise)")
+    p.add_argument("--self-ensemble", action="store_true",
+                   help="also run every model on the 8 flips and quarter turns of each image, keeping the per-pixel "
+                        "median (labelled MODEL+se; 8x the time)")
     p.add_argument("--results-md", type=Path, help="also write the tables into this Markdown file...")
     p.add_argument("--section", help="...as its generated block eval:SECTION")
     p.add_argument("--no-html", action="store_true", help="only results.json and results.csv")
@@ -94,6 +97,7 @@ def run(args: argparse.Namespace) -> int:
         html=not args.no_html,
         progress=not args.no_progress,
         command=command,
+        self_ensemble=args.self_ensemble,
     )
     from mcdenoise.eval.ranking import terminal_summary
 
@@ -134,6 +138,8 @@ def _command_from(args: argparse.Namespace) -> str:
         parts += ["--threads", str(args.threads)]
     if args.precision != ["float32"]:
         parts += ["--precision", *args.precision]
+    if args.self_ensemble:
+        parts.append("--self-ensemble")
     if args.results_md is not None:
         parts += ["--results-md", str(args.results_md), "--section", str(args.section)]
     return "mcdenoise " + shlex.join(parts)

@@ -16,9 +16,11 @@ __all__ = ["build_methods"]
 
 def build_methods(models: Sequence[str | os.PathLike], oidn: Sequence[str], classic: bool,
                   device: torch.device, precisions: Sequence[str] = ("float32",), oidn_threads: int | None = None,
-                  notes: list[str] | None = None) -> list[Method]:
+                  notes: list[str] | None = None, self_ensemble: bool = False) -> list[Method]:
     """Noisy, OIDN per quality (on ``oidn_threads`` threads; default every core), NL-means, then
-    each model in each precision; a bfloat16 run of a model is labelled ``LABEL+bf16``.
+    each model in each precision; a bfloat16 run of a model is labelled ``LABEL+bf16``. With
+    ``self_ensemble`` each model also runs as a self-ensemble (:mod:`mcdenoise.models.symmetry`),
+    labelled ``LABEL+se``, beside its single pass.
 
     Labels stay unique: a run folder or weights file whose label is taken (``runs/layer`` beside
     the shipped ``layer``) is labelled by its path as given; only a label still taken gets a
@@ -53,9 +55,9 @@ def build_methods(models: Sequence[str | os.PathLike], oidn: Sequence[str], clas
                 methods.append(OIDNMethod("high", oidn_threads))
                 taken.add("oidn-high")
             continue
-        for prec in resolved:
+        for prec, se in [(p, se) for p in resolved for se in ((False, True) if self_ensemble else (False,))]:
             net, info = load_denoiser(spec, device=device)
-            suffix = "+bf16" if prec == "bfloat16" else ""
+            suffix = ("+bf16" if prec == "bfloat16" else "") + ("+se" if se else "")
             label = str(info.get("label") or info["name"]) + suffix
             first = label
             if label in taken and info.get("source") in ("run", "file"):
@@ -66,5 +68,6 @@ def build_methods(models: Sequence[str | os.PathLike], oidn: Sequence[str], clas
             taken.add(label)
             if label != first and notes is not None:
                 notes.append(f"{spec}: labelled {label!r} ({first!r} was taken)")
-            methods.append(ModelMethod(label, net, {**info, "precision": prec}, device, precision=prec))
+            methods.append(ModelMethod(label, net, {**info, "precision": prec}, device, precision=prec,
+                                       self_ensemble=se))
     return methods

@@ -177,10 +177,12 @@ class ModelMethod(Method):
     kind = "model"
 
     def __init__(self, name: str, model: torch.nn.Module, load_info: dict[str, Any], device: torch.device | str,
-                 precision: str = "float32") -> None:
+                 precision: str = "float32", self_ensemble: bool = False) -> None:
         from mcdenoise.models.inference import prepare_inference
 
         super().__init__(name)
+        #: Run in the 8 orientations and keep the per-pixel median (mcdenoise.models.symmetry); timed as one call.
+        self.self_ensemble = self_ensemble
         self.parameters = sum(p.numel() for p in model.parameters())  # the trained form's, before folding
         # The inference form that bench times and denoise runs (WSKP's RepVGG blocks folded).
         self.model = prepare_inference(model, fast=True, precision=precision)
@@ -193,7 +195,7 @@ class ModelMethod(Method):
         # load_info's "name" is the registered model; here "name" is this method's table label.
         loaded = {k: v for k, v in self.load_info.items() if k not in ("name", "label")}
         return {**super().info, "model": self.load_info.get("name"), "input_kind": self.model.input_kind,
-                "parameters": params, **loaded}
+                "parameters": params, **loaded, "self_ensemble": self.self_ensemble}
 
     def prepare(self, x: Inputs) -> dict[str, torch.Tensor]:
         m = self.model
@@ -209,5 +211,10 @@ class ModelMethod(Method):
 
     def run(self, prepared: dict[str, torch.Tensor]) -> np.ndarray:
         with torch.inference_mode():
-            out = _to_numpy(self.model(prepared)[0])
+            if self.self_ensemble:
+                from mcdenoise.models.symmetry import self_ensemble
+
+                out = self_ensemble(lambda b: _to_numpy(self.model(b)[0]), prepared)
+            else:
+                out = _to_numpy(self.model(prepared)[0])
         return self.model.pixel_consistency(out, *self._stats)

@@ -107,6 +107,7 @@ def evaluate(
     progress: bool = True,
     command: str | None = None,
     save_images: bool = False,
+    self_ensemble: bool = False,
 ) -> dict[str, Any]:
     """Run the evaluation and write the report folder ``out``; returns what results.json holds.
 
@@ -135,6 +136,8 @@ def evaluate(
             (plus ``reference.exr``), as the demo does.
         progress: a tqdm bar over (image, spp) on stderr.
         command: the command line recorded in the report (default: a Python call).
+        self_ensemble: also run every model as a self-ensemble of its 8 orientations
+            (:mod:`mcdenoise.models.symmetry`), labelled ``+se``, beside its single pass.
     """
     ks = _check_spp(spp)
     if (results_md is None) != (section is None):
@@ -161,7 +164,8 @@ def evaluate(
         torch.set_num_threads(threads)
     try:
         doc = _evaluate(models, data_list, out, split, ks, list(oidn), classic, max_images, dev, metric_names,
-                        images, notes, html, progress, command, save_images, tuple(precision), threads)
+                        images, notes, html, progress, command, save_images, tuple(precision), threads,
+                        self_ensemble)
     finally:
         torch.set_num_threads(old_threads)
     if results_md is not None and section is not None:
@@ -186,11 +190,12 @@ def _evaluate(models: Sequence[str | os.PathLike], data_list: list[Any], out: Pa
               oidn: list[str], classic: bool, max_images: int | None, dev: torch.device, metric_names: list[str],
               images: list[EvalImage], notes: list[str], html: bool, progress: bool, command: str | None,
               save_images: bool = False, precisions: tuple[str, ...] = ("float32",),
-              threads: int | None = None) -> dict[str, Any]:
+              threads: int | None = None, self_ensemble: bool = False) -> dict[str, Any]:
     """The evaluation loop and the report folder (arguments checked by :func:`evaluate`)."""
     from tqdm import tqdm
 
-    methods = build_methods(models, list(oidn), classic, dev, precisions, oidn_threads=threads, notes=notes)
+    methods = build_methods(models, list(oidn), classic, dev, precisions, oidn_threads=threads, notes=notes,
+                            self_ensemble=self_ensemble)
     prov = provenance(dev, bool(oidn))
     if command is None:
         command = f"mcdenoise.eval.evaluate(models={list(map(str, models))}, data={list(map(str, data_list))}, " \

@@ -62,6 +62,7 @@ def denoise(
     device: str | torch.device | None = None,
     max_memory: int | str | None = None,
     precision: str = "auto",
+    self_ensemble: bool = False,
 ) -> Any:
     """Denoise one image.
 
@@ -84,6 +85,8 @@ def denoise(
             or ``bfloat16`` for the convolution trunks of a model given by name or weights (a
             :class:`Denoiser` instance is run as it is). The shipped models' test-split metrics
             agree within 2 % between the two (docs/PERFORMANCE.md).
+        self_ensemble: run the model in the 8 orientations of the image and keep the per-pixel
+            median (:mod:`mcdenoise.models.symmetry`): 8x the time, fewer exploded highlights.
 
     Returns:
         The denoised radiance with ``color``'s kind, dtype, layout and device.
@@ -124,8 +127,9 @@ def denoise(
         net, info = choose_model(inputs, None if model is None else str(model), device=dev, precision=precision)
         label = f"{info['name']} ({info['preset']}, {info['source']}: {info['why']})"
     budget = None if max_memory is None else parse_memory(max_memory)
-    out, run = denoise_inputs(inputs, net, device=dev, max_memory=budget, progress=False)
-    log.info("denoised with %s reading %s; %s on %s", label, ", ".join(run.channels), describe_plan(run.plan), dev)
+    out, run = denoise_inputs(inputs, net, device=dev, max_memory=budget, progress=False, self_ensemble=self_ensemble)
+    log.info("denoised with %s reading %s; %s on %s%s", label, ", ".join(run.channels), describe_plan(run.plan), dev,
+             ", self-ensemble of 8 orientations" if self_ensemble else "")
     if last:
         out = np.moveaxis(out, 0, -1)
     if is_torch:

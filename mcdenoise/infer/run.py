@@ -11,6 +11,7 @@ import numpy as np
 import torch
 
 from mcdenoise.data.oidn_input import OIDN_CHANNELS, oidn_guides
+from mcdenoise.data.symmetry import source_box, turned_shape
 from mcdenoise.errors import McDenoiseError
 from mcdenoise.infer.memory import DEFAULT_MAX_MEMORY, MemoryCost, measure_cost
 from mcdenoise.infer.receptive import alignment, receptive_field
@@ -18,6 +19,7 @@ from mcdenoise.infer.sources import Inputs
 from mcdenoise.infer.tiling import TilePlan, plan_tiles, run_tiled
 from mcdenoise.models.exposure import EXPOSURE_SCALE
 from mcdenoise.models.registry import Denoiser
+from mcdenoise.models.symmetry import ALL_OPS, median_of, transform_batch, untransform
 
 __all__ = ["default_device", "memory_cost", "tile_plan", "emitter_reach", "denoise_inputs", "RunInfo",
            "BUDGET_FRACTION", "describe_plan", "MIN_CORE", "BudgetError"]
@@ -70,12 +72,15 @@ def memory_cost(model: Denoiser, spp: int, device: torch.device) -> MemoryCost:
 
 
 def tile_plan(model: Denoiser, height: int, width: int, *, spp: int = 1, device: torch.device | str = "cpu",
-              tile: int | str | None = "auto", max_memory: int | None = None, reach: int = 0) -> TilePlan:
+              tile: int | str | None = "auto", max_memory: int | None = None, reach: int = 0,
+              held_outputs: int = 1) -> TilePlan:
     """The tile grid for ``model`` on an ``height x width`` image.
 
     ``tile``: ``"auto"``/None sizes tiles from ``max_memory`` (bytes, default 4 GiB) and the
     measured per-pixel cost; an int fixes the core side. The overlap is the measured receptive field
     plus ``reach`` (:func:`emitter_reach`: how far the fill of emitter pixels looks).
+    ``held_outputs``: whole-image outputs held while a tile runs (a self-ensemble keeps one per
+    orientation).
     """
     device = torch.device(device)
     if tile not in (None, "auto"):
@@ -84,7 +89,8 @@ def tile_plan(model: Denoiser, height: int, width: int, *, spp: int = 1, device:
     if height * width <= SMALL_IMAGE:
         return plan_tiles(height, width, receptive=0)  # one tile; nothing to measure
     total = max_memory or DEFAULT_MAX_MEMORY
-    budget = total * BUDGET_FRACTION - 3 * height * width * 4  # minus the output
+    out_bytes = 3 * height * width * 4 * max(1, held_outputs)
+    budget = total * BUDGET_FRACTION - out_bytes  # minus the outputs
     cost = memory_cost(model, spp, device)
     window = cost.max_pixels(budget)
     if height * width <= window:
@@ -94,7 +100,7 @@ def tile_plan(model: Denoiser, height: int, width: int, *, spp: int = 1, device:
     core = min(math.ceil(MIN_CORE / align) * align, max(height, width))
     if plan.core < core:
         side = core + 2 * plan.overlap
-        need = (cost.bytes(side * side) + 3 * height * width * 4) / BUDGET_FRACTION
+        need = (cost.bytes(side * side) + out_bytes) / BUDGET_FRACTION
         raise BudgetError(f"--max-memory {_binary(total)}: below the minimum for {type(model).__name__} on this "
                           f"{width}x{height} image: its smallest tile ({core} px + {plan.overlap} px overlap a side, "
                           f"{spp} spp) needs {_mib(need)}; give at least --max-memory {_mib(need)}, or --tile N")
@@ -128,14 +134,19 @@ class RunInfo:
     spp: int
     #: What the model's consistency clamp did (docs/models/consistency.md); "" for a model without one.
     consistency: str = ""
+    #: Orientations run (8 for a self-ensemble, :mod:`mcdenoise.models.symmetry`; else 1).
+    orientations: int = 1
 
 
 def denoise_inputs(inputs: Inputs, model: Denoiser, *, device: torch.device | str | None = None,
                    tile: int | str | None = "auto", max_memory: int | None = None,
-                   progress: bool | None = None) -> tuple[np.ndarray, RunInfo]:
+                   progress: bool | None = None, self_ensemble: bool = False) -> tuple[np.ndarray, RunInfo]:
     """Run ``model`` on ``inputs`` tile by tile -> ``(3, H, W)`` float32 linear radiance and a :class:`RunInfo`.
 
     ``progress``: a tqdm bar over tiles on stderr (None: only when stderr is a terminal).
+    ``self_ensemble``: run the model on the image in each of the 8 orientations of
+    :mod:`mcdenoise.models.symmetry` (each a whole tiled run of the turned image, so tiling stays
+    exact) and keep the per-pixel median: 8x the time, 8 outputs held in memory.
     """
     device = torch.device(device) if device is not None else default_device()
     from mcdenoise.infer.oidn_method import OIDNMethod
@@ -149,26 +160,19 @@ def denoise_inputs(inputs: Inputs, model: Denoiser, *, device: torch.device | st
     kind = model.input_kind
     spp = inputs.samples.spp if (kind == "samples" and inputs.samples is not None) else 1
     names = [c for c in model.required_channels() if c != "scene_features"]
-    plan = tile_plan(model, inputs.height, inputs.width, spp=spp, device=device, tile=tile, max_memory=max_memory,
-                     reach=emitter_reach(inputs, names))
+    ops = ALL_OPS if self_ensemble else (0,)
+    reach = emitter_reach(inputs, names)
     add_oidn(inputs, [n for n in names if n in OIDN_CHANNELS])
-    scale = image_exposure(inputs, model, names, device)
-
-    def read(t: Any) -> dict[str, torch.Tensor]:
-        b = inputs.batch(names, kind, t.window, t.core, device)
-        if scale is not None:
-            b[EXPOSURE_SCALE] = scale
-        return b
-
-    bar = None
-    if progress is not False:
-        from tqdm import tqdm
-
-        def bar(tiles: Any) -> Any:
-            return tqdm(tiles, total=len(plan), desc="denoise", unit="tile", disable=None if progress is None else False,
-                        leave=False)
-
-    out = run_tiled(model, read, plan, progress=bar)
+    scale = image_exposure(inputs, model, names, device)  # of the whole image: the same in every orientation
+    outs, plan = [], None
+    for op in ops:
+        h, w = turned_shape(inputs.height, inputs.width, op)
+        plan = tile_plan(model, h, w, spp=spp, device=device, tile=tile, max_memory=max_memory, reach=reach,
+                         held_outputs=len(ops))
+        outs.append(untransform(_run_turned(inputs, model, names, kind, plan, op, scale, device, progress), op))
+    assert plan is not None
+    out = median_of(outs)
+    del outs
     k = getattr(model.config, "consistency", None)
     note = "" if k is None else f"each pixel within {k:g} standard errors of its own samples' mean"
     if kind == "pixels" and k is not None:
@@ -180,7 +184,32 @@ def denoise_inputs(inputs: Inputs, model: Denoiser, *, device: torch.device | st
             note = f"not applied (consistency {k:g}): the input has no per-pixel variance of its samples"
         out = model.pixel_consistency(out, inputs.pixels.get("radiance"), var, n)
     inputs.warn_nonfinite()
-    return out, RunInfo(plan, device, names, spp, note)
+    return out, RunInfo(plan, device, names, spp, note, len(ops))
+
+
+def _run_turned(inputs: Inputs, model: Denoiser, names: list[str], kind: str, plan: TilePlan, op: int,
+                scale: torch.Tensor | None, device: torch.device, progress: bool | None) -> np.ndarray:
+    """``run_tiled`` over the image turned by op (``plan`` is the turned image's): each tile's
+    window is read from the box of the image that op moves onto it, then turned."""
+    def read(t: Any) -> dict[str, torch.Tensor]:
+        window = source_box(t.window, op, inputs.height, inputs.width)
+        core = source_box(t.core, op, inputs.height, inputs.width)
+        b = transform_batch(inputs.batch(names, kind, window, core, device), op)
+        if scale is not None:
+            b[EXPOSURE_SCALE] = scale
+        return b
+
+    bar = None
+    if progress is not False:
+        from tqdm import tqdm
+
+        desc = "denoise" if op == 0 else f"denoise, orientation {op + 1} of 8"
+
+        def bar(tiles: Any) -> Any:
+            return tqdm(tiles, total=len(plan), desc=desc, unit="tile", disable=None if progress is None else False,
+                        leave=False)
+
+    return run_tiled(model, read, plan, progress=bar)
 
 
 def image_exposure(inputs: Inputs, model: Denoiser, names: list[str], device: torch.device) -> torch.Tensor | None:

@@ -1,8 +1,8 @@
 """Flips and 90-degree rotations of a crop that keep every channel consistent with its meaning.
 
-The 8 operations are the symmetries of the square (dihedral group D4): ``op = k + 4 * flip``
-first mirrors the crop left-right when ``flip``, then turns it ``k`` quarter turns the way
-``numpy.rot90(a, k, axes=(-2, -1))`` does. Each is the image of a rigid change of the world:
+The 8 operations are the symmetries of the square (dihedral group D4, :mod:`mcdenoise.data.symmetry`):
+``op = k + 4 * flip`` first mirrors the crop left-right when ``flip``, then turns it ``k`` quarter
+turns the way ``numpy.rot90(a, k, axes=(-2, -1))`` does. Each is the image of a rigid change of the world:
 
 * A left-right mirror of the image is what the same camera sees of the scene reflected about the
   plane through the camera that holds its forward and up axes; a quarter turn is what it sees of
@@ -44,34 +44,12 @@ from typing import Any
 import numpy as np
 
 from mcdenoise.data.channels import base_name, exposure_power, is_variance_name
+from mcdenoise.data.symmetry import FILM_VECTORS, NUM_OPS, film_matrix, spatial
 
 __all__ = ["NUM_OPS", "film_matrix", "spatial", "world_matrix", "augment_arrays", "camera_frame", "scale_exposure",
            "draw_exposure"]
 
-NUM_OPS = 8
-_FLIP = np.array([[-1, 0], [0, 1]], np.int64)
-# numpy.rot90 (axes=(-2, -1)) sends the film point (X, Y) of an n x n image to (Y, n - X).
-_QUARTER = np.array([[0, 1], [-1, 0]], np.int64)
-_FILM_VECTORS = frozenset({"lens", "motion"})
 _WORLD_DIRECTIONS = frozenset({"normal", "normal_diffuse"})
-
-
-def film_matrix(op: int) -> np.ndarray:
-    """``(2, 2)`` int matrix ``M`` of op on film directions ``(x right, y down)``."""
-    if not 0 <= op < NUM_OPS:
-        raise ValueError(f"augmentation op must be in 0..{NUM_OPS - 1}, got {op}")
-    k, flip = op % 4, op // 4
-    m = _FLIP if flip else np.eye(2, dtype=np.int64)
-    return np.linalg.matrix_power(_QUARTER, k) @ m
-
-
-def spatial(arr: np.ndarray, op: int) -> np.ndarray:
-    """Move the pixels of ``(..., h, w)`` by op (a contiguous copy; ``h == w`` for a quarter turn)."""
-    k, flip = op % 4, op // 4
-    if k % 2 and arr.shape[-1] != arr.shape[-2]:
-        raise ValueError(f"a quarter turn needs a square crop, got {arr.shape[-2]}x{arr.shape[-1]}")
-    out = arr[..., ::-1] if flip else arr
-    return np.ascontiguousarray(np.rot90(out, k, axes=(-2, -1)))
 
 
 def camera_frame(extra: Mapping[str, Any]) -> np.ndarray | None:
@@ -123,7 +101,7 @@ def augment_arrays(arrays: Mapping[str, np.ndarray], op: int, camera_to_world: n
         if base == "subpixel":
             centre = None if is_variance_name(name) else np.full(2, 0.5)
             out[name] = _vector(name, arr, m, op, affine_center=centre)
-        elif base in _FILM_VECTORS:
+        elif base in FILM_VECTORS:
             out[name] = _vector(name, arr, m, op)
         elif w is not None and base in _WORLD_DIRECTIONS:
             out[name] = _vector(name, arr, w, op)
