@@ -1,12 +1,10 @@
-"""Does test-time self-ensembling pay for a kernel model? Each image is denoised as it is and in
-the other 7 orientations of the square's symmetry group (rotations by 90 degrees, with and
-without a mirror); the outputs, turned back, are averaged over 4 (no rotation and 180 degrees,
-each with and without the mirror) and over all 8. Prints relMSE and PSNR per image and the means.
+"""How a model's 8 orientations combine (campaign 20, docs/TRAINING.md): on held-out images, each
+model's geometric-mean and mean relMSE and mean PSNR for one pass and for the per-pixel mean,
+median and trimmed means of its 8 orientations (:mod:`mcdenoise.models.symmetry`). Each pass runs
+as ``eval`` runs it (the model's own consistency clamp inside). With ``--per-op``, also each
+orientation alone, and the image whose worst orientation is worst.
 
-    python scripts/self_ensemble_probe.py data/scene_inputs --model layer-medium --spp 4
-
-Averaging orientations reduces the variance of the predicted kernels, not their bias: it costs
-4x or 8x the model's time.
+    python scripts/self_ensemble_probe.py data/detail_ref data/detail_ref2 data/rich_ref3 data/rich_val --models layer-medium --spp 4 8 16
 """
 from __future__ import annotations
 
@@ -15,50 +13,51 @@ import argparse
 import numpy as np
 import torch
 
-from mcdenoise.data.tensors import image_batch
 from mcdenoise.eval.images import collect_images
+from mcdenoise.eval.methods import Inputs, ModelMethod
 from mcdenoise.eval.metrics import psnr, relmse
+from mcdenoise.models.symmetry import ALL_OPS, median_of, transform_batch, untransform
 from mcdenoise.models.weights import load_denoiser
 
 
-def orient(t: torch.Tensor, k: int, inverse: bool = False) -> torch.Tensor:
-    """Orientation ``k`` in 0..7 of ``t``'s last two axes (k % 4 quarter turns after a mirror when k >= 4)."""
-    turns, mirror = k % 4, k >= 4
-    if inverse:
-        t = torch.rot90(t, -turns, dims=(-2, -1))
-        return t.flip(-1) if mirror else t
-    if mirror:
-        t = t.flip(-1)
-    return torch.rot90(t, turns, dims=(-2, -1))
+def aggregates(passes: np.ndarray) -> dict[str, np.ndarray]:
+    """``passes (8, 3, H, W)`` -> each way of combining them."""
+    srt = np.sort(passes, 0)
+    return {"one pass": passes[0], "mean": passes.mean(0), "median": median_of(list(passes)),
+            "trim 1": srt[1:-1].mean(0), "trim 2": srt[2:-2].mean(0)}
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("roots", nargs="+")
-    ap.add_argument("--model", required=True)
-    ap.add_argument("--spp", type=int, default=4)
-    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--models", nargs="+", required=True)
+    ap.add_argument("--spp", nargs="+", type=int, default=[4, 8, 16])
+    ap.add_argument("--per-op", action="store_true")
     a = ap.parse_args()
-    torch.set_num_threads(a.threads)
-    model, _ = load_denoiser(a.model)
     images = [e.folder for e in collect_images(a.roots, split="val")[0]]
-    rows = []
-    print(f"{a.model}, {a.spp} spp: relMSE one / 4 / 8 orientations | PSNR one / 4 / 8")
-    for im in images:
-        ref = np.asarray(im.read_reference(["radiance"])["radiance"])
-        batch = image_batch(im, model.required_channels(), model.input_kind, samples=slice(0, a.spp))
-        outs = []
-        with torch.no_grad():
-            for k in range(8):  # image tensors have >= 4 axes; scene_features (B, F) stay as they are
-                bk = {n: orient(v, k) if v.dim() >= 4 else v for n, v in batch.items()}
-                outs.append(orient(model(bk), k, inverse=True)[0])
-        ests = [outs[0], torch.stack([outs[i] for i in (0, 2, 4, 6)]).mean(0), torch.stack(outs).mean(0)]
-        ests = [e.numpy() for e in ests]
-        r = [float(relmse(e, ref)) for e in ests] + [float(psnr(e, ref)) for e in ests]
-        rows.append(r)
-        print(f"{im.path.name[:30]:30s} " + " ".join(f"{v:.4f}" for v in r[:3]) + " | " + " ".join(f"{v:.2f}" for v in r[3:]))
-    m = np.mean(rows, 0)
-    print(f"{'mean':30s} " + " ".join(f"{v:.4f}" for v in m[:3]) + " | " + " ".join(f"{v:.2f}" for v in m[3:]))
+    for spec in a.models:
+        m, info = load_denoiser(spec)
+        meth = ModelMethod(spec, m, info, "cpu")
+        for spp in a.spp:
+            res: dict[str, list] = {}
+            per_op = []
+            for im in images:
+                ref = im.read_reference(["radiance"])["radiance"]
+                batch = meth.prepare(Inputs(im, spp))
+                with torch.inference_mode():
+                    passes = np.stack([untransform(meth.run(transform_batch(batch, op)), op) for op in ALL_OPS])
+                per_op.append([relmse(p, ref) for p in passes])
+                for key, out in aggregates(passes).items():
+                    res.setdefault(key, []).append((relmse(out, ref), psnr(out, ref)))
+            for key, v in res.items():
+                v = np.array(v)
+                print(f"{spec} spp {spp:2d} {key:9s}: relMSE geo {np.exp(np.log(v[:, 0]).mean()):.5f} mean {v[:, 0].mean():.5f}"
+                      f"  PSNR {v[:, 1].mean():.4f}  ({len(v)} images)", flush=True)
+            if a.per_op:
+                r = np.array(per_op)
+                print(f"{spec} spp {spp:2d} per orientation, geo relMSE: " + " ".join(f"{x:.5f}" for x in np.exp(np.log(r).mean(0))))
+                w = int(np.argmax(r.max(1)))
+                print(f"{spec} spp {spp:2d} worst image {images[w].path}: relMSE per orientation " + " ".join(f"{x:.3g}" for x in r[w]))
 
 
 if __name__ == "__main__":
