@@ -199,3 +199,20 @@ def test_repeated_calls_reuse_the_prepared_model_until_the_weights_change(tmp_pa
     assert not torch.equal(w0, next(first.parameters()))
     other, _ = choose_model(inputs, str(path), precision="bfloat16")
     assert other is not first  # a precision is part of what was prepared
+
+
+def test_self_ensemble_is_the_median_of_the_turned_runs(wskp):
+    """Catches ``self_ensemble=True`` not reaching the run (one pass) or a pixel model's turned
+    inputs mangled (normals, depth and albedo move with the colour): the result equals the
+    per-pixel median of the model run on each turned image and turned back, on a non-square image."""
+    from mcdenoise.models.symmetry import ALL_OPS, median_of, transform_batch, untransform
+
+    b = _buffers()
+    out = mcdenoise.denoise(b["color"], b["albedo"], b["normal"], b["depth"], model=wskp, device="cpu",
+                            self_ensemble=True)
+    batch = {"radiance": b["color"], "albedo": b["albedo"], "normal": b["normal"], "depth": b["depth"][None]}
+    batch = {k: torch.from_numpy(np.ascontiguousarray(v, np.float32))[None] for k, v in batch.items()}
+    with torch.no_grad():
+        want = median_of([untransform(wskp(transform_batch(batch, op))[0].numpy(), op) for op in ALL_OPS])
+    np.testing.assert_allclose(out, want, rtol=1e-5, atol=1e-6)
+    assert np.abs(want - _reference(wskp, b)).max() > 1e-3

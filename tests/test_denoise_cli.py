@@ -305,3 +305,29 @@ def test_preview_failure_leaves_no_exr_and_stale_temps_go(tmp_path, wskp, capfd)
     assert out.is_file() and (tmp_path / "p.png").is_file() and not stale.exists()
     _refused(capfd, ["denoise", str(src), "-o", str(tmp_path / "m.exr"), "--model", wskp, "--device", "mps"],
              "--device mps", "cpu or cuda")
+
+
+def test_self_ensemble_runs_eight_orientations_and_records_it(tmp_path, capfd):
+    """Catches --self-ensemble being ignored (one pass, no record in the file) or changing nothing:
+    the command says it ran 8 orientations, the EXR header says so, and the result differs from
+    the single pass of the same (not rotation-equivariant, random-weight) model."""
+    from mcdenoise.io.exr import read_exr_header
+
+    torch.manual_seed(0)
+    model = build_model("layer", "small")
+    batch = synthetic_batch(model, spp=2, height=H, width=W)
+    samples = {k: v[0].numpy() for k, v in batch.items() if k != "scene_features"}
+    meta = ImageMeta(width=W, height=H, spp=2, channels=list(samples), scene="t")
+    folder = write_image(tmp_path / "img", meta=meta, samples=samples)
+    weights = _weights(tmp_path / "layer.safetensors", "layer")
+    outs = {}
+    for flag in ([], ["--self-ensemble"]):
+        out = tmp_path / f"out{len(flag)}.exr"
+        rc = main(["denoise", str(folder), "-o", str(out), "--model", weights, "--precision", "float32", *flag])
+        cap = capfd.readouterr()
+        assert rc == 0, cap.err
+        assert ("8 orientations" in cap.out) == bool(flag)
+        assert ("mcdenoise_self_ensemble" in read_exr_header(out)) == bool(flag)
+        outs[bool(flag)] = read_exr(out)["radiance"]
+    assert np.isfinite(outs[True]).all()
+    assert np.abs(outs[True] - outs[False]).max() > 1e-3 * np.abs(outs[False]).max()
