@@ -21,6 +21,10 @@ check, which compiles the input's kernel), ``check`` (an extra view's camera che
 ``reference`` (renderer timings; a scene's first reference compiles its kernel). Under generator 4
 a view's ``samples`` and ``reference`` are its shares of its view stack's renders plus its own writing.
 
+``--rr-depth R`` starts Russian roulette at depth R in the procedural renders only (the datasets
+keep Mitsuba's 5); the line ``input noise`` then shows what the shorter expected paths cost in
+noise at the same spp (docs/DATASETS.md, "Russian roulette").
+
 To measure an older checkout, copy this file into its ``benchmarks/`` and run it there with
 ``--views 1`` (older DatasetConfigs have no views).
 """
@@ -51,6 +55,9 @@ def main() -> int:
     ap.add_argument("--objects", default="10-50")
     ap.add_argument("--world", default="classic", help="procedural world (classic or rich)")
     ap.add_argument("--max-depth", type=int, default=6, help="path depth of both sides (default 6)")
+    ap.add_argument("--rr-depth", type=int, default=None,
+                    help="Russian roulette from this depth in the procedural renders only (a measurement knob: datasets "
+                         "keep Mitsuba's 5; default 5)")
     ap.add_argument("--generator", type=int, default=None, help="scene pipeline version (default: the latest)")
     ap.add_argument("--cornell", type=int, default=3, help="cornell-box renders (default 3; the first is not counted)")
     cache = ap.add_mutually_exclusive_group()
@@ -85,6 +92,13 @@ def main() -> int:
     kw = {"views": args.views} if args.views != 1 else {}
     if args.generator is not None:
         kw["generator"] = args.generator
+    if args.rr_depth is not None:
+        import dataclasses
+
+        import mcdenoise.render.procedural_image as procedural_image
+
+        settings = procedural_image._settings  # every procedural render's settings come from here
+        procedural_image._settings = lambda *a, **k: dataclasses.replace(settings(*a, **k), rr_depth=args.rr_depth)
     cfg = DatasetConfig(count=args.count, seed=args.seed, spp=args.spp, ref_spp=args.ref_spp, width=n, height=n,
                         objects=parse_objects(args.objects), world=args.world, max_depth=args.max_depth, **kw)
     root = Path(tmp.name) / "ds"
@@ -94,9 +108,13 @@ def main() -> int:
     render_cornell(max(1, args.cornell - 1))
     cornell_s = statistics.median(cornell[1:])
     rows = []
+    noise = []  # per image: mean over pixels of Var(mean) / (mean^2 + 0.01), the noisy input's expected relMSE
     for i in range(cfg.count):
         for rel in image_paths(cfg, i):
-            meta = read_image(root / rel).meta
+            img = read_image(root / rel)
+            meta = img.meta
+            px = img.read_noisy(["radiance", "radiance_variance"])
+            noise.append(float((px["radiance_variance"] / (px["radiance"].astype("float64") ** 2 + 0.01)).mean()))
             proc = meta.extra["procedural"]
             rs = meta.extra.get("render_seconds", {})
             view = meta.extra.get("view", {})
@@ -118,7 +136,7 @@ def main() -> int:
     res = {
         "machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, load {os.getloadavg()[0]:.1f}",
         "config": {"count": cfg.count, "views": args.views, "size": n, "spp": cfg.spp, "ref_spp": cfg.ref_spp,
-                   "seed": cfg.seed, "objects": list(cfg.objects), "world": cfg.world, "max_depth": cfg.max_depth, "generator": cfg.generator, "kernel_cache": "cold" if args.cold else "warm"},
+                   "seed": cfg.seed, "objects": list(cfg.objects), "world": cfg.world, "max_depth": cfg.max_depth, "rr_depth": args.rr_depth or 5, "generator": cfg.generator, "kernel_cache": "cold" if args.cold else "warm"},
         "cornell_s": [round(c, 2) for c in cornell],
         "cornell_per_image_s": round(cornell_s, 2),
         "wall_s": round(wall, 2),
@@ -126,6 +144,7 @@ def main() -> int:
         "cpu_s": round(cpu, 1),  # all threads of the process (Dr.Jit's pool included)
         "cpu_per_image_s": round(cpu / max(1, len(rows)), 2),
         "ratio": round(per_image / cornell_s, 2),
+        "input_noise_median": round(statistics.median(noise), 5),
         "images": rows,
     }
     # Views of scenes with moving objects pay a scene update and a kernel launch per time slice:
@@ -149,6 +168,8 @@ def main() -> int:
     print(f"procedural: {cfg.count} scene(s) x {args.views} view(s): {wall:.1f} s wall, {per_image:.2f} s per image "
           f"({'cold' if args.cold else 'warm'} kernel cache; {res['machine']})")
     print(f"ratio procedural / cornell-box per image: {res['ratio']:.2f}")
+    print(f"input noise: median over images of the {args.spp}-spp mean's Var / (mean^2 + 0.01), averaged over pixels: "
+          f"{res['input_noise_median']:.4g} (the noisy input's expected relMSE; compares --rr-depth settings)")
     print(f"CPU time of the procedural images: {cpu:.1f} CPU-s, {res['cpu_per_image_s']:.2f} CPU-s per image "
           f"({res['cpu_per_image_s'] * 2000 / 3600:.2f} CPU-hours for 2000 such images)")
     if args.json:
