@@ -108,15 +108,19 @@ def test_separate_feature_files(tmp_path, wskp, capfd):
     np.testing.assert_array_equal(a, b)
 
 
-def test_image_folder_feeds_sample_model(tmp_path, capfd):
-    """Catches an image folder's per-sample buffers not reaching a sample model, in tiles."""
+def _sample_folder(tmp_path, name: str):
+    """An image folder of 2 random samples of every channel model ``name`` reads, and random weights of it."""
     torch.manual_seed(0)
-    model = build_model("sbmc", "small")
-    batch = synthetic_batch(model, spp=2, height=H, width=W)
+    batch = synthetic_batch(build_model(name, "small"), spp=2, height=H, width=W)
     samples = {k: v[0].numpy() for k, v in batch.items() if k != "scene_features"}
     meta = ImageMeta(width=W, height=H, spp=2, channels=list(samples), scene="t")
     folder = write_image(tmp_path / "img", meta=meta, samples=samples)
-    weights = _weights(tmp_path / "sbmc.safetensors", "sbmc")
+    return folder, _weights(tmp_path / f"{name}.safetensors", name)
+
+
+def test_image_folder_feeds_sample_model(tmp_path, capfd):
+    """Catches an image folder's per-sample buffers not reaching a sample model, in tiles."""
+    folder, weights = _sample_folder(tmp_path, "sbmc")
     rc = main(["denoise", str(folder), "-o", str(tmp_path / "out.exr"), "--model", weights, "--tile", "24"])
     cap = capfd.readouterr()
     assert rc == 0, cap.err
@@ -313,13 +317,7 @@ def test_self_ensemble_runs_eight_orientations_and_records_it(tmp_path, capfd):
     the single pass of the same (not rotation-equivariant, random-weight) model."""
     from mcdenoise.io.exr import read_exr_header
 
-    torch.manual_seed(0)
-    model = build_model("layer", "small")
-    batch = synthetic_batch(model, spp=2, height=H, width=W)
-    samples = {k: v[0].numpy() for k, v in batch.items() if k != "scene_features"}
-    meta = ImageMeta(width=W, height=H, spp=2, channels=list(samples), scene="t")
-    folder = write_image(tmp_path / "img", meta=meta, samples=samples)
-    weights = _weights(tmp_path / "layer.safetensors", "layer")
+    folder, weights = _sample_folder(tmp_path, "layer")
     outs = {}
     for flag in ([], ["--self-ensemble"]):
         out = tmp_path / f"out{len(flag)}.exr"
