@@ -21,8 +21,8 @@ check, which compiles the input's kernel), ``check`` (an extra view's camera che
 ``reference`` (renderer timings; a scene's first reference compiles its kernel). Under generator 4
 a view's ``samples`` and ``reference`` are its shares of its view stack's renders plus its own writing.
 
-``--rr-depth R`` starts Russian roulette at depth R in the procedural renders only (the datasets
-keep Mitsuba's 5); the line ``input noise`` then shows what the shorter expected paths cost in
+``--rr-depth R`` starts Russian roulette at depth R in the procedural renders only (``mcdenoise
+dataset --rr-depth R``; the cornell box keeps Mitsuba's 5); the line ``input noise`` then shows what the shorter expected paths cost in
 noise at the same spp (docs/DATASETS.md, "Russian roulette").
 
 To measure an older checkout, copy this file into its ``benchmarks/`` and run it there with
@@ -55,9 +55,9 @@ def main() -> int:
     ap.add_argument("--objects", default="10-50")
     ap.add_argument("--world", default="classic", help="procedural world (classic or rich)")
     ap.add_argument("--max-depth", type=int, default=6, help="path depth of both sides (default 6)")
-    ap.add_argument("--rr-depth", type=int, default=None,
-                    help="Russian roulette from this depth in the procedural renders only (a measurement knob: datasets "
-                         "keep Mitsuba's 5; default 5)")
+    ap.add_argument("--rr-depth", type=int, default=5,
+                    help="Russian roulette from this depth in the procedural renders only, as `mcdenoise dataset "
+                         "--rr-depth` (default 5; the cornell box keeps 5)")
     ap.add_argument("--generator", type=int, default=None, help="scene pipeline version (default: the latest)")
     ap.add_argument("--cornell", type=int, default=3, help="cornell-box renders (default 3; the first is not counted)")
     cache = ap.add_mutually_exclusive_group()
@@ -92,15 +92,9 @@ def main() -> int:
     kw = {"views": args.views} if args.views != 1 else {}
     if args.generator is not None:
         kw["generator"] = args.generator
-    if args.rr_depth is not None:
-        import dataclasses
-
-        import mcdenoise.render.procedural_image as procedural_image
-
-        settings = procedural_image._settings  # every procedural render's settings come from here
-        procedural_image._settings = lambda *a, **k: dataclasses.replace(settings(*a, **k), rr_depth=args.rr_depth)
     cfg = DatasetConfig(count=args.count, seed=args.seed, spp=args.spp, ref_spp=args.ref_spp, width=n, height=n,
-                        objects=parse_objects(args.objects), world=args.world, max_depth=args.max_depth, **kw)
+                        objects=parse_objects(args.objects), world=args.world, max_depth=args.max_depth,
+                        rr_depth=args.rr_depth, **kw)
     root = Path(tmp.name) / "ds"
     t0, c0 = time.perf_counter(), time.process_time()
     render_dataset(root, cfg, progress=False)
@@ -136,7 +130,7 @@ def main() -> int:
     res = {
         "machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, load {os.getloadavg()[0]:.1f}",
         "config": {"count": cfg.count, "views": args.views, "size": n, "spp": cfg.spp, "ref_spp": cfg.ref_spp,
-                   "seed": cfg.seed, "objects": list(cfg.objects), "world": cfg.world, "max_depth": cfg.max_depth, "rr_depth": args.rr_depth or 5, "generator": cfg.generator, "kernel_cache": "cold" if args.cold else "warm"},
+                   "seed": cfg.seed, "objects": list(cfg.objects), "world": cfg.world, "max_depth": cfg.max_depth, "rr_depth": cfg.rr_depth, "generator": cfg.generator, "kernel_cache": "cold" if args.cold else "warm"},
         "cornell_s": [round(c, 2) for c in cornell],
         "cornell_per_image_s": round(cornell_s, 2),
         "wall_s": round(wall, 2),

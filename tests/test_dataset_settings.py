@@ -62,7 +62,7 @@ def test_manifest_hash_covers_render_settings_and_variant(tmp_path: Path) -> Non
     assert settings is not None and settings["variant"] == "llvm_ad_rgb" and settings["spp"] == 8
     assert json.loads((a / "dataset.json").read_text())["variant"] == "llvm_ad_rgb"
     for i, change in enumerate([{"spp": 16}, {"ref_spp": 128}, {"width": 48}, {"max_depth": 8}, {"world": "rich"},
-                                {"variant": "cuda_ad_rgb"}]):
+                                {"variant": "cuda_ad_rgb"}, {"rr_depth": 2}]):
         b = _dataset(tmp_path / f"b{i}", DatasetConfig(**{**base.__dict__, **change}))
         assert read_manifest(b) == read_manifest(a)  # same images and splits ...
         assert manifest_hash(b) != manifest_hash(a), change  # ... yet other data
@@ -74,6 +74,7 @@ def test_old_datasets_keep_their_manifest_hash(tmp_path: Path) -> None:
     A dataset.json with no variant rebuilds the old manifest byte for byte."""
     old = _dataset(tmp_path / "old", DatasetConfig(count=3, seed=5, spp=8, ref_spp=64, width=32, height=32))
     assert "variant" not in json.loads((old / "dataset.json").read_text())
+    assert "rr_depth" not in json.loads((old / "dataset.json").read_text())  # added later, at its old value
     assert read_manifest_settings(old) is None
     assert manifest_hash(old) == hashlib.sha256(_old_manifest_bytes(old)).hexdigest()
 
@@ -157,3 +158,20 @@ def test_shipped_cards_state_the_variant_they_were_rendered_with() -> None:
                 assert args.count > 0 and args.ref_spp > 0, path.name
                 continue
             assert _parse(cmd).variant == "llvm_ad_rgb", path.name
+
+
+def test_russian_roulette_depth_reaches_the_renders_and_the_recipe(tmp_path: Path) -> None:
+    """Bug caught: ``--rr-depth`` parsed but not passed to the renderer (datasets silently at 5), a
+    recipe that drops it (the card's command would render other pixels), or a value out of range
+    accepted."""
+    from mcdenoise.render.procedural_image import _settings
+
+    args = _parse("mcdenoise dataset --out d --count 2 --rr-depth 2")
+    assert args.rr_depth == 2
+    cfg = DatasetConfig(count=2, rr_depth=2)
+    assert _settings(cfg, 0).rr_depth == 2 and _settings(DatasetConfig(count=2), 0).rr_depth == 5
+    root = _dataset(tmp_path / "d", DatasetConfig(count=3, spp=4, variant="llvm_ad_rgb", rr_depth=3))
+    assert _parse(dataset_command(root)).rr_depth == 3
+    assert "--rr-depth" not in dataset_command(_dataset(tmp_path / "e", DatasetConfig(count=3, spp=4, variant="llvm_ad_rgb")))
+    with pytest.raises(Exception, match="rr_depth"):
+        DatasetConfig(count=2, rr_depth=0).check()

@@ -1,7 +1,7 @@
 """Render a procedural training dataset with a scene-level split.
 
     mcdenoise dataset --count N --out DIR [--spp 8] [--ref-spp 1024] [--size 128] [--seed S]
-                      [--shard i/n] [--frames K | --views K] [--kind indoor|outdoor] [--max-depth 6]
+                      [--shard i/n] [--frames K | --views K] [--kind indoor|outdoor] [--max-depth 6] [--rr-depth 5]
                       [--variant auto|llvm_ad_rgb|cuda_ad_rgb]
     mcdenoise dataset --merge --out DIR
 
@@ -61,6 +61,9 @@ def add_parser(p: argparse.ArgumentParser) -> None:
                    help="scene pipeline version (default: the latest; a dataset made by an older one names it "
                         "in dataset.json, and its recipe states it)")
     p.add_argument("--max-depth", type=int, default=6, help="path depth of input and reference (default 6)")
+    p.add_argument("--rr-depth", type=int, default=5,
+                   help="depth from which Russian roulette may end a path, input and reference (default 5, "
+                        "Mitsuba's; 2 is cheaper and noisier per sample: docs/DATASETS.md)")
     p.add_argument("--objects", default="10-50", help="MIN-MAX objects per scene (default 10-50)")
     p.add_argument("--split", default="0.8,0.1,0.1", help="train,val,test fractions of scenes (default 0.8,0.1,0.1)")
     p.add_argument("--merge", action="store_true",
@@ -115,7 +118,7 @@ def run(args: argparse.Namespace) -> int:
     check_seed(args.seed)
     cfg = DatasetConfig(
         count=args.count, seed=args.seed, spp=args.spp, ref_spp=args.ref_spp, width=w, height=h,
-        frames=args.frames, max_depth=args.max_depth, kind=args.kind, fractions=parse_split(args.split),
+        frames=args.frames, max_depth=args.max_depth, rr_depth=args.rr_depth, kind=args.kind, fractions=parse_split(args.split),
         objects=parse_objects(args.objects), views=args.views, world=args.world,
         variant=variant, **({} if args.generator is None else {"generator": args.generator}),
     )

@@ -76,6 +76,8 @@ def dataset_command(data_dir: str | Path) -> str:
         args += ["--kind", d["kind"]]
     if d.get("max_depth", 6) != 6:
         args += ["--max-depth", str(d["max_depth"])]
+    if d.get("rr_depth", 5) != 5:
+        args += ["--rr-depth", str(d["rr_depth"])]
     if d.get("world", "classic") != "classic":
         args += ["--world", d["world"]]
     lo, hi = d.get("objects", [10, 50])

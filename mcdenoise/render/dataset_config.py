@@ -62,6 +62,10 @@ class DatasetConfig:
         width, height: image size in pixels.
         frames: frames per scene; > 1 renders a camera path with ``position`` and ``motion``.
         max_depth: path depth (Mitsuba's convention), input and reference alike.
+        rr_depth: depth from which Russian roulette may end a path (unbiased), input and reference
+            alike; Mitsuba's 5 by default. Earlier is cheaper per sample and noisier
+            (docs/DATASETS.md, "Russian roulette"). Recorded only when not 5, so the
+            dataset.json and manifest of every dataset made before the field are unchanged.
         kind: ``"indoor"``, ``"outdoor"`` or None (both, half each on average).
         fractions: train/val/test fractions of the scene-level split.
         objects: (min, max) objects per scene (fewer compile faster; SBMC used up to 50).
@@ -92,12 +96,14 @@ class DatasetConfig:
     generator: int = GENERATOR
     world: str = "classic"
     variant: str | None = None
+    rr_depth: int = 5
 
     def check(self) -> None:
         from mcdenoise.render.procedural import KINDS
 
         for name, lo, hi in (("count", 1, 10**7), ("spp", 1, 1 << 20), ("ref_spp", 0, 1 << 20),
-                             ("width", 1, 16384), ("height", 1, 16384), ("frames", 1, 100000), ("max_depth", 1, 1024), ("views", 1, 10000)):
+                             ("width", 1, 16384), ("height", 1, 16384), ("frames", 1, 100000), ("max_depth", 1, 1024), ("views", 1, 10000),
+                             ("rr_depth", 1, 1024)):
             v = getattr(self, name)
             if not isinstance(v, (int, np.integer)) or not lo <= v <= hi:
                 raise SceneError(f"dataset: {name}={v!r} is out of range [{lo}, {hi}]")
@@ -129,6 +135,8 @@ class DatasetConfig:
         d["objects"] = list(self.objects)
         if d["variant"] is None:  # not recorded: the file keeps the form of older versions
             del d["variant"]
+        if d["rr_depth"] == 5:  # the default before the field existed: not recorded, as above
+            del d["rr_depth"]
         return {"format": "mcdenoise-procedural-dataset", "version": 1, **d}
 
     def settings(self) -> dict[str, Any]:

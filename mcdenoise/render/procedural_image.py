@@ -52,7 +52,8 @@ def _settings(cfg: DatasetConfig, seed: int, *, ps: Any = None, camera: Any = No
     motion = {k: tuple(v) for k, v in ps.object_motion.items()} if ps is not None else {}
     slices = reference_time_slices(ps, camera, cfg.width) if motion else RenderSettings.ref_time_slices
     return RenderSettings(spp=cfg.spp, ref_spp=cfg.ref_spp, width=cfg.width, height=cfg.height, seed=seed,
-                          max_depth=cfg.max_depth, object_motion=motion or None, camera_to_world_end=camera_end,
+                          max_depth=cfg.max_depth, rr_depth=cfg.rr_depth, object_motion=motion or None,
+                          camera_to_world_end=camera_end,
                           ref_time_slices=slices)
 
 
