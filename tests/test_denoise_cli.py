@@ -329,3 +329,14 @@ def test_self_ensemble_runs_eight_orientations_and_records_it(tmp_path, capfd):
         outs[bool(flag)] = read_exr(out)["radiance"]
     assert np.isfinite(outs[True]).all()
     assert np.abs(outs[True] - outs[False]).max() > 1e-3 * np.abs(outs[False]).max()
+
+
+@pytest.mark.skipif(not oidn_available(), reason="pyoidn not installed")
+def test_self_ensemble_with_oidn_says_it_was_not_applied(tmp_path, capfd):
+    """Catches --self-ensemble silently doing nothing: OIDN runs once, and the command says so
+    instead of leaving the user to believe the output is an ensemble."""
+    _blender_exr(tmp_path / "full.exr")
+    rc = main(["denoise", str(tmp_path / "full.exr"), "-o", str(tmp_path / "o.exr"), "--model", "oidn",
+               "--self-ensemble"])
+    out = capfd.readouterr().out
+    assert rc == 0 and "self-ensemble: not applied" in out and "orientations" not in out

@@ -182,6 +182,8 @@ def _denoise(args: argparse.Namespace, src: Path, tile: int | str, budget: int) 
                               self_ensemble=args.self_ensemble)
     turns = f", in each of {run.orientations} orientations (per-pixel median)" if run.orientations > 1 else ""
     print(f"ran {describe_plan(run.plan)} on {run.device}{turns}")
+    if args.self_ensemble and run.orientations == 1:
+        print("self-ensemble: not applied (OIDN runs once, as its library does)")
     if run.consistency:
         print(f"consistency: {run.consistency}")
     attrs = {"mcdenoise_model": str(info["name"]), "mcdenoise_weights": str(info["weights"]),
