@@ -129,7 +129,8 @@ def denoise(
     budget = None if max_memory is None else parse_memory(max_memory)
     out, run = denoise_inputs(inputs, net, device=dev, max_memory=budget, progress=False, self_ensemble=self_ensemble)
     log.info("denoised with %s reading %s; %s on %s%s", label, ", ".join(run.channels), describe_plan(run.plan), dev,
-             ", self-ensemble of 8 orientations" if self_ensemble else "")
+             f", self-ensemble of {run.orientations} orientations" if run.orientations > 1
+             else (", self-ensemble not applied (OIDN runs once)" if self_ensemble else ""))
     if last:
         out = np.moveaxis(out, 0, -1)
     if is_torch:
