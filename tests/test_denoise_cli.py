@@ -108,11 +108,13 @@ def test_separate_feature_files(tmp_path, wskp, capfd):
     np.testing.assert_array_equal(a, b)
 
 
-def _sample_folder(tmp_path, name: str):
-    """An image folder of 2 random samples of every channel model ``name`` reads, and random weights of it."""
+def _sample_folder(tmp_path, name: str, nan: int = 0):
+    """An image folder of 2 random samples of every channel model ``name`` reads (the first ``nan``
+    radiance values NaN), and random weights of it."""
     torch.manual_seed(0)
     batch = synthetic_batch(build_model(name, "small"), spp=2, height=H, width=W)
     samples = {k: v[0].numpy() for k, v in batch.items() if k != "scene_features"}
+    samples["radiance"].reshape(-1)[:nan] = np.nan
     meta = ImageMeta(width=W, height=H, spp=2, channels=list(samples), scene="t")
     folder = write_image(tmp_path / "img", meta=meta, samples=samples)
     return folder, _weights(tmp_path / f"{name}.safetensors", name)
@@ -314,19 +316,24 @@ def test_preview_failure_leaves_no_exr_and_stale_temps_go(tmp_path, wskp, capfd)
 def test_self_ensemble_runs_eight_orientations_and_records_it(tmp_path, capfd):
     """Catches --self-ensemble being ignored (one pass, no record in the file) or changing nothing:
     the command says it ran 8 orientations, the EXR header says so, and the result differs from
-    the single pass of the same (not rotation-equivariant, random-weight) model."""
+    the single pass of the same (not rotation-equivariant, random-weight) model. Also catches the
+    NaN count of a samples file multiplied by the 8 reads."""
     from mcdenoise.io.exr import read_exr_header
 
-    folder, weights = _sample_folder(tmp_path, "layer")
-    outs = {}
+    folder, weights = _sample_folder(tmp_path, "layer", nan=3)
+    outs, counts = {}, []
     for flag in ([], ["--self-ensemble"]):
         out = tmp_path / f"out{len(flag)}.exr"
         rc = main(["denoise", str(folder), "-o", str(out), "--model", weights, "--precision", "float32", *flag])
         cap = capfd.readouterr()
         assert rc == 0, cap.err
         assert ("8 orientations" in cap.out) == bool(flag)
+        warned = [ln.split(": ")[-1] for ln in cap.err.splitlines() if "non-finite" in ln]
+        assert len(warned) == 1, cap.err
+        counts.append(warned[0])  # e.g. "9 non-finite input value(s) ...": the samples' and noisy.exr's
         assert ("mcdenoise_self_ensemble" in read_exr_header(out)) == bool(flag)
         outs[bool(flag)] = read_exr(out)["radiance"]
+    assert counts[0] == counts[1], counts  # counted once, not once per orientation
     assert np.isfinite(outs[True]).all()
     assert np.abs(outs[True] - outs[False]).max() > 1e-3 * np.abs(outs[False]).max()
 

@@ -164,12 +164,16 @@ def denoise_inputs(inputs: Inputs, model: Denoiser, *, device: torch.device | st
     reach = emitter_reach(inputs, names)
     add_oidn(inputs, [n for n in names if n in OIDN_CHANNELS])
     scale = image_exposure(inputs, model, names, device)  # of the whole image: the same in every orientation
-    outs, plan = [], None
+    outs, plan, counted = [], None, None
     for op in ops:
         h, w = turned_shape(inputs.height, inputs.width, op)
         plan = tile_plan(model, h, w, spp=spp, device=device, tile=tile, max_memory=max_memory, reach=reach,
                          held_outputs=len(ops))
         outs.append(untransform(_run_turned(inputs, model, names, kind, plan, op, scale, device, progress), op))
+        if counted is None and inputs.samples is not None:
+            counted = inputs.samples.nonfinite  # a file's samples count their NaNs at each read: once is the count
+    if counted is not None:
+        inputs.samples.nonfinite = counted
     assert plan is not None
     out = median_of(outs)
     del outs
