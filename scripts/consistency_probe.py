@@ -1,6 +1,5 @@
 """Choose a model's ``consistency`` (issue 19, "never worse than the noisy input"): its
-output (with ``--self-ensemble``: the per-pixel median of its 8 orientations,
-:mod:`mcdenoise.models.symmetry`) clamped per pixel to ``k`` shrunk standard errors of the pixel's own samples
+output clamped per pixel to ``k`` shrunk standard errors of the pixel's own samples
 (:mod:`mcdenoise.models.consistency`; a pixel model's from the input's per-pixel variance, as
 ``denoise`` and ``eval`` apply it), for each ``k``, on held-out images at each spp. Prints the
 geometric-mean and median relMSE, the mean PSNR, and on how many images the result is worse than
@@ -31,9 +30,6 @@ def main() -> None:
     ap.add_argument("--models", nargs="+", required=True)
     ap.add_argument("--spp", nargs="+", type=int, default=[4, 8, 16])
     ap.add_argument("--ks", nargs="+", type=float, default=[1.5, 2, 2.5, 3, 4])
-    ap.add_argument("--self-ensemble", action="store_true",
-                    help="the model's output is the per-pixel median of its 8 orientations (unclamped passes); "
-                         "each k then clamps that median")
     ap.add_argument("--prior", type=float, default=None,
                     help="weight of the neighbourhood's variance in samples (default: the module's PRIOR; 0: none)")
     a = ap.parse_args()
@@ -44,7 +40,7 @@ def main() -> None:
     methods = []
     for spec in a.models:
         m, info = load_denoiser(spec)
-        methods.append(ModelMethod(info.get("label", spec), m, info, "cpu", self_ensemble=a.self_ensemble))
+        methods.append(ModelMethod(info.get("label", spec), m, info, "cpu"))
     for spp in a.spp:
         res: dict = {}
         for im in images:

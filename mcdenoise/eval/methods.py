@@ -17,6 +17,7 @@ import torch
 from mcdenoise.data.format import ImageFolder
 from mcdenoise.data.tensors import input_arrays
 from mcdenoise.eval.classic import NLMeansParams, feature_nlmeans
+from mcdenoise.models.symmetry import self_ensemble
 
 __all__ = ["Inputs", "Method", "NoisyMethod", "OIDNMethod", "ClassicMethod", "ModelMethod", "GUIDES"]
 
@@ -212,8 +213,6 @@ class ModelMethod(Method):
     def run(self, prepared: dict[str, torch.Tensor]) -> np.ndarray:
         with torch.inference_mode():
             if self.self_ensemble:
-                from mcdenoise.models.symmetry import self_ensemble
-
                 out = self_ensemble(lambda b: _to_numpy(self.model(b)[0]), prepared)
             else:
                 out = _to_numpy(self.model(prepared)[0])
