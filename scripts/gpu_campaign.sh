@@ -13,6 +13,9 @@
 # that they travel within the device tool's 64 MiB). Everything is time-boxed: DEADLINE seconds
 # after the start the run folders are packed, whatever state the training is in (checkpoints
 # every 100 steps; the schedule is set from a measured step time so a run normally finishes).
+# RESUME_ONLY=1 (campaign 21): a second call on the still-warm machine skips the site, the
+# Mitsuba check, the rendering and the calibration leg, and resumes the runs on the shards already
+# in $ROOT until the new DEADLINE (the machine keeps /dev/shm only while it stays warm).
 # Nothing here is needed to use or test mcdenoise; it is the recipe of campaign 13's weights.
 set -uo pipefail
 cd "$(dirname "$0")/.."
@@ -45,6 +48,7 @@ fi
 mkdir -p $ROOT/logs; df -h $ROOT | tail -1
 log "site unpacked; data in $ROOT"
 
+if [ -z "${RESUME_ONLY:-}" ]; then
 $PY - $VARIANT <<'EOF' || { log "Mitsuba $VARIANT does not run here"; exit 3; }
 import sys, time, mitsuba as mi
 t = time.time(); mi.set_variant(sys.argv[1])
@@ -69,6 +73,9 @@ n=$(ls -d $ROOT/*/proc_* 2>/dev/null | wc -l); log "after 45 s: $n scenes finish
 if [ "$n" -eq 0 ]; then tail -20 $ROOT/logs/render_det_0.log; fi
 wait
 for r in "${ROOTS[@]}"; do $MC dataset --merge --out $r > /dev/null 2>&1 || log "merge failed: $r"; done
+else  # RESUME_ONLY=1: a second call on the warm machine trains on the shards the first call rendered
+  ROOTS=($ROOT/det_* $ROOT/rich_*)
+fi
 GOOD=(); for r in "${ROOTS[@]}"; do [ -s $r/manifest.json ] && GOOD+=($r); done
 nimg=$(ls -d $ROOT/*/proc_*/view_* 2>/dev/null | wc -l)
 log "rendered: $nimg images in ${#GOOD[@]} shards; $(du -sh $ROOT | cut -f1)"
@@ -100,14 +107,16 @@ train_all() {  # $1 = steps per run (space-separated, one per run), $2 = timeout
   wait
 }
 (nvidia-smi --query-gpu=name,utilization.gpu,memory.used --format=csv -l 20 > $ROOT/logs/gpu.txt 2>&1 &)
-train_all "$(for n in "${NAMES[@]}"; do echo -n "$CALIB "; done)" 0
-for n in "${NAMES[@]}"; do tail -n 2 $ROOT/logs/train_$n.log; done
-steps_for() {  # run folder -> total steps that fit before the deadline
+if [ -z "${RESUME_ONLY:-}" ]; then
+  train_all "$(for n in "${NAMES[@]}"; do echo -n "$CALIB "; done)" 0
+  for n in "${NAMES[@]}"; do tail -n 2 $ROOT/logs/train_$n.log; done
+fi
+steps_for() {  # run folder -> total steps that fit before the deadline, from the run's last step
   $PY - "$1" $CALIB "$(( DEADLINE - $(el) - 45 ))" <<'EOF'
 import csv, statistics, sys
 rows = [r for r in csv.DictReader(open(sys.argv[1] + "/metrics.csv")) if r["s_per_step"] and int(r["step"]) > min(10, int(sys.argv[2]) // 2)]
 s = statistics.median(float(r["s_per_step"]) for r in rows)
-c = int(sys.argv[2])
+c = int(rows[-1]["step"])  # the calibration leg's end, or where the last call stopped
 print(max(c + 1, c + int(max(0, int(sys.argv[3])) / (s * 1.25))), file=sys.stdout)
 print(f"{sys.argv[1]}: {s:.3f} s/step", file=sys.stderr)
 EOF
