@@ -25,7 +25,8 @@ ROOT = Path(__file__).resolve().parents[1]
 def test_gpu_campaign_script_renders_trains_resumes_and_packs(tmp_path: Path) -> None:
     """Catches: a runs-file line that the script mis-parses (arguments lost or split), a resume
     refused because the second leg's settings differ from the first's, a step count that ignores
-    the calibration, a pack missing a run or its checkpoint (what comes back from the device)."""
+    the calibration, a pack missing a run or its checkpoint (what comes back from the device); and a
+    second, RESUME_ONLY call that renders again, loses the first call's shards or restarts its runs."""
     runs = tmp_path / "runs.txt"
     runs.write_text("# toy runs\nlm|--model layer --preset small --model-overrides '{\"autoexposure\": 0.18}'\n"
                     "wk|--model wskp --loss smape\n")
@@ -51,3 +52,20 @@ def test_gpu_campaign_script_renders_trains_resumes_and_packs(tmp_path: Path) ->
     assert (ds["ref_spp"], ds["seed"], ds["world"]) == (32, 5, "detailed")
     cfg = (tmp_path / "x" / "lm" / "config.json").read_text()
     assert '"autoexposure": 0.18' in cfg and '"preset": "small"' in cfg
+
+    # A second call on the warm machine (RESUME_ONLY=1): no site, no render, no calibration leg;
+    # both runs resume from where the first call stopped, on the same shards.
+    first = {run: int((tmp_path / "x" / run / "metrics.csv").read_text().splitlines()[-1].split(",")[0])
+             for run in ("lm", "wk")}
+    out2 = tmp_path / "out2"
+    env2 = {**env, "RESUME_ONLY": "1", "DEADLINE": "80", "OUT": str(out2)}
+    proc = subprocess.run(["bash", "scripts/gpu_campaign.sh"], cwd=ROOT, env=env2, capture_output=True, text=True,
+                          timeout=300)
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
+    assert "mitsuba ok" not in proc.stdout and "after 45 s" not in proc.stdout  # nothing rendered again
+    assert " in 2 shards" in proc.stdout  # it found the first call's 2 shards
+    for run in ("lm", "wk"):
+        with tarfile.open(out2 / f"{run}.tgz") as t:
+            t.extractall(tmp_path / "y", filter="data")
+        last = int((tmp_path / "y" / run / "metrics.csv").read_text().splitlines()[-1].split(",")[0])
+        assert last > first[run], (run, first[run], last)  # resumed past the first call's end
