@@ -10,6 +10,7 @@ from pathlib import Path
 
 import pytest
 import torch
+import torch.nn.functional as F
 
 from mcdenoise.models.registry import build_model, synthetic_batch
 from mcdenoise.train.checkpoint import latest_checkpoint, load_checkpoint, prune_checkpoints, save_checkpoint
@@ -142,6 +143,31 @@ def test_relmse_in_exception_is_dark_where_it_fires_and_the_wide_ratio_fires_lat
     lit = torch.full((1, 3, 2, 2), 1e6)
     cost = float(get_loss("relmse_in_wide")(torch.zeros_like(lit), lit, torch.zeros_like(lit)))
     assert cost == pytest.approx(WIDE_GUIDE_RATIO ** 2, rel=1e-6)
+
+
+def test_lowpass_l1_charges_block_brightness_and_ignores_what_averages_out() -> None:
+    """Catches a low-pass term that pools the wrong block (or not at all), so that it charges noise
+    the pixel losses already cost, or misses a uniform darkening, which is what it exists to charge;
+    and partial border blocks averaged over pixels outside the image (a crop not a multiple of 8)."""
+    from mcdenoise.train.losses import LOWPASS_BLOCK
+
+    loss = get_loss("lowpass_l1")
+    g = torch.Generator().manual_seed(5)
+    target = torch.rand((2, 3, 4 * LOWPASS_BLOCK, 4 * LOWPASS_BLOCK), generator=g, dtype=torch.float64) + 1.0
+    # +-0.5 in a checkerboard: every 8x8 block's mean is unchanged, though each pixel is off by 0.5.
+    yy, xx = torch.meshgrid(torch.arange(target.shape[-2]), torch.arange(target.shape[-1]), indexing="ij")
+    checker = ((yy + xx) % 2 * 2 - 1).to(target) * 0.5
+    assert float(loss(target + checker, target)) == pytest.approx(0.0, abs=1e-12)
+    assert float(get_loss("smape")(target + checker, target)) > 0.1
+    # 5% darker everywhere: each block costs 0.05 * mean / (mean + 0.01).
+    blocks = F.avg_pool2d(target, LOWPASS_BLOCK)
+    want = float((0.05 * blocks / (blocks + 0.01)).mean())
+    assert float(loss(0.95 * target, target)) == pytest.approx(want, rel=1e-9)
+    # 12 px: the border blocks are 8x4, 4x8 and 4x4 means of the pixels that exist.
+    small = torch.ones((1, 1, 12, 12), dtype=torch.float64)
+    pred = small.clone()
+    pred[..., 8:, 8:] = 0.0  # the 4x4 corner block is black: cost 1 / 1.01 on 1 of 4 blocks
+    assert float(loss(pred, small)) == pytest.approx(0.25 / 1.01, rel=1e-9)
 
 
 def test_input_guide_is_a_firefly_proof_local_mean_without_gradient() -> None:

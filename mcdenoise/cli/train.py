@@ -37,7 +37,7 @@ def add_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--batch", type=int, help="global batch, crops per step over all processes (default 8)")
     p.add_argument("--crop", type=int, help="crop edge in pixels (default 48)")
     p.add_argument("--lr", type=float, help="peak learning rate (default: the model's, see docs/TRAINING.md)")
-    p.add_argument("--loss", help="l1, l2, relmse, relmse_ref, relmse_in, relmse_in_wide, smape, tonemapped_l2 or log_l1 (default: the model's paper's); "
+    p.add_argument("--loss", help="l1, l2, relmse, relmse_ref, relmse_in, relmse_in_wide, smape, tonemapped_l2, log_l1 or lowpass_l1 (default: the model's paper's); "
                    "or a weighted sum such as smape+0.1*relmse_ref")
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), help="default auto: CUDA when available")
     p.add_argument("--seed", type=int, help="seeds the weights and every batch (default 0)")
