@@ -236,7 +236,7 @@ LOWPASS_BLOCK = 8
 # does), and held-out and third-party images showed middle luminance quartiles darkened by 5-10%
 # (TRAINING.md, campaigns 18-19). This term charges that drift directly and is blind to error that
 # averages out within a block (residual noise, a shifted edge), which the pixel terms already cost.
-# Its weight is the pooled target's, which carries 1/64 of a pixel's noise.
+# Its weight is the pooled target's, whose noise variance is 1/64 of a pixel's.
 @register_loss("lowpass_l1", unbiased=False, description=f"mean |B(pred) - B(target)| / (B(target) + 0.01), B the "
                f"mean over {LOWPASS_BLOCK}x{LOWPASS_BLOCK} blocks (partial blocks at the border): local brightness "
                "drift, such as darkening, that pixel losses let through")
