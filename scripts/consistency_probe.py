@@ -8,6 +8,9 @@ over spp of geometric-mean relMSE among those whose mean PSNR is nowhere below t
 without the clamp.
 
     python scripts/consistency_probe.py data/detail_ref data/detail_ref2 data/rich_ref3 data/rich_val --models sbmc-small layer-small --spp 4 8 16 --ks 1.5 2 3 4
+
+A ``k`` written ``K@N`` (``4@8``) clamps only from ``N`` samples per pixel (the configuration's
+``consistency_min_spp``): below it the output is the unclamped one.
 """
 from __future__ import annotations
 
@@ -24,12 +27,23 @@ from mcdenoise.models.consistency import consistency_clamp, pixel_consistency_cl
 from mcdenoise.models.weights import load_denoiser
 
 
+def parse_k(text: str) -> tuple[float, int]:
+    """``"4"`` -> (4.0, 2); ``"4@8"`` -> (4.0, 8): k and the fewest spp it acts at."""
+    k, _, n = text.partition("@")
+    return float(k), int(n) if n else 2
+
+
+def k_label(k: float, first: int) -> str:
+    return f"k {k:g}" + (f"@{first}" if first != 2 else "")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("roots", nargs="+")
     ap.add_argument("--models", nargs="+", required=True)
     ap.add_argument("--spp", nargs="+", type=int, default=[4, 8, 16])
-    ap.add_argument("--ks", nargs="+", type=float, default=[1.5, 2, 2.5, 3, 4])
+    ap.add_argument("--ks", nargs="+", type=parse_k, default=[parse_k(k) for k in ("1.5", "2", "2.5", "3", "4")],
+                    help="k, or K@N to clamp only from N spp (consistency_min_spp)")
     ap.add_argument("--prior", type=float, default=None,
                     help="weight of the neighbourhood's variance in samples (default: the module's PRIOR; 0: none)")
     a = ap.parse_args()
@@ -56,17 +70,17 @@ def main() -> None:
                 out = torch.from_numpy(meth.run(batch))[None]
                 r = res.setdefault(meth.name, {})
                 r.setdefault("none", []).append((relmse(out[0].numpy(), ref), psnr(out[0].numpy(), ref), r_noisy, p_noisy))
-                for k in a.ks:
+                for k, first in a.ks:
                     if meth.model.input_kind == "samples":
-                        c = consistency_clamp(out, batch["radiance"], k)[0].numpy()
+                        c = consistency_clamp(out, batch["radiance"], k, first)[0].numpy()
                     else:  # what denoise and eval do after a pixel model: the k samples' statistics
-                        c = pixel_consistency_clamp(out[0].numpy(), mu, x.guides["radiance_variance"], spp, k)
-                    r.setdefault(f"k {k:g}", []).append((relmse(c, ref), psnr(c, ref), r_noisy, p_noisy))
+                        c = pixel_consistency_clamp(out[0].numpy(), mu, x.guides["radiance_variance"], spp, k, first)
+                    r.setdefault(k_label(k, first), []).append((relmse(c, ref), psnr(c, ref), r_noisy, p_noisy))
         for name, r in res.items():
             for key, v in r.items():
                 v = np.array(v)
                 wr, wp = int((v[:, 0] >= v[:, 2]).sum()), int((v[:, 1] <= v[:, 3]).sum())
-                print(f"spp {spp:2d} {name:12s} {key:6s}: relMSE geo {np.exp(np.log(v[:, 0]).mean()):.5f} median "
+                print(f"spp {spp:2d} {name:12s} {key:8s}: relMSE geo {np.exp(np.log(v[:, 0]).mean()):.5f} median "
                       f"{np.median(v[:, 0]):.5f}  PSNR {v[:, 1].mean():.4f}  worse than noisy: relMSE {wr}, PSNR {wp} of {len(v)}",
                       flush=True)
 

@@ -119,6 +119,47 @@ def test_models_apply_it_to_their_own_output(name: str) -> None:
     assert not torch.equal(clamped, raw)  # k = 1 binds somewhere on random inputs
 
 
+@pytest.mark.parametrize("name", SAMPLE_MODELS)
+def test_min_spp_gates_the_clamp_by_the_sample_count(name: str) -> None:
+    """``consistency_min_spp`` 8: catches a gate that compares with the wrong count (the stored
+    spp, a tile's, an off-by-one at exactly 8), or one that leaks into the default: below 8 samples
+    the output is the unclamped one, from 8 it is today's clamp, and the default (2) clamps at 4."""
+    torch.manual_seed(0)
+    model = build_model(name, "small", autoexposure=0.18).eval()
+    for spp, clamps in ((4, False), (7, False), (8, True)):
+        batch = synthetic_batch(model, spp=spp, height=24, width=24)
+        with torch.no_grad():
+            model.config.consistency, model.config.consistency_min_spp = None, 2
+            raw = model(batch)
+            model.config.consistency = 1.0
+            default = model(batch)
+            model.config.consistency_min_spp = 8
+            gated = model(batch)
+        assert not torch.equal(default, raw)  # k = 1 binds somewhere on random inputs
+        torch.testing.assert_close(gated, default if clamps else raw, rtol=0, atol=0)
+
+
+def test_pixel_clamp_min_spp_matches_the_sample_clamp() -> None:
+    """The pixel form obeys the same gate: catches ``denoise`` and ``eval`` clamping a pixel model
+    below its ``consistency_min_spp`` while a sample model would not."""
+    from mcdenoise.data.stats import pixel_stats
+    from mcdenoise.models.consistency import pixel_consistency_clamp
+
+    out = torch.rand(1, 3, 9, 11) * 3
+    for s in (4, 8):
+        x = _samples(s=s, seed=8).float()
+        mean, var_mean = pixel_stats(x[0].numpy())
+        got = pixel_consistency_clamp(out[0].numpy(), mean, var_mean, s, 2.0, 8)
+        np.testing.assert_allclose(got, consistency_clamp(out, x, 2.0, 8)[0].numpy(), rtol=1e-5, atol=1e-6)
+        assert np.array_equal(got, out[0].numpy()) == (s < 8)
+
+
+@pytest.mark.parametrize("bad", [0, -2, 2.5, True])
+def test_refuses_a_min_spp_that_is_not_a_count(bad) -> None:
+    with pytest.raises(ValueError, match="consistency_min_spp"):
+        build_model("layer", "small", consistency=4.0, consistency_min_spp=bad)
+
+
 @pytest.mark.parametrize("k", [0.0, -1.0])
 def test_refuses_a_non_positive_k(k: float) -> None:
     with pytest.raises(ValueError, match="consistency"):
@@ -184,6 +225,27 @@ def test_denoise_clamps_a_pixel_model_where_the_input_has_variances() -> None:
     alone, info = denoise_inputs(inp, model, device="cpu", tile=None, progress=False)
     np.testing.assert_array_equal(alone, raw)
     assert info.consistency.startswith("not applied")  # the user is told, not left to guess
+
+
+def test_denoise_says_when_the_gate_leaves_the_output_unclamped() -> None:
+    """Catches ``denoise`` reporting a clamp that the sample count switched off (the user would
+    believe each pixel is bounded by its samples when it is not), for a pixel and a sample model."""
+    from mcdenoise.infer.run import denoise_inputs
+
+    torch.manual_seed(0)
+    model = build_model("wskp", "small", autoexposure=0.18).eval()
+    raw, _ = denoise_inputs(_wskp_inputs(True)[0], model, device="cpu", tile=None, progress=False)
+    model.config.consistency, model.config.consistency_min_spp = 1.0, 8
+    gated, info = denoise_inputs(_wskp_inputs(True)[0], model, device="cpu", tile=None, progress=False)
+    np.testing.assert_array_equal(gated, raw)
+    assert info.consistency == "not applied (consistency 1 acts from 8 spp): the input has 4"
+    layer = build_model("layer", "small", autoexposure=0.18, consistency=1.0, consistency_min_spp=8).eval()
+    for spp, note in ((4, "not applied (consistency 1 acts from 8 spp): the input has 4"),
+                      (8, "each pixel within 1 standard errors of its own samples' mean")):
+        b = synthetic_batch(layer, batch=1, spp=spp, height=16, width=16)
+        samples = {k: v[0].numpy() for k, v in b.items() if k != "scene_features"}
+        inp = from_arrays(samples["radiance"].mean(axis=0), samples=samples, scene_features=b["scene_features"][0].numpy())
+        assert denoise_inputs(inp, layer, device="cpu", tile=None, progress=False)[1].consistency == note
 
 
 def test_eval_clamps_a_pixel_model_with_the_k_samples_statistics(tmp_path) -> None:

@@ -74,3 +74,26 @@ def test_eval_cli_scores_scene_files(scenes: Path, tmp_path: Path) -> None:
     assert rc == 0
     rows = json.loads((out / "results.json").read_text())["rows"]
     assert {(r["method"], r["spp"]) for r in rows} == {("noisy", 2), ("noisy", 4)}
+
+
+@pytest.mark.render
+def test_eval_cli_renders_each_seed_and_reports_their_spread(scenes: Path, tmp_path: Path,
+                                                             capsys: pytest.CaptureFixture) -> None:
+    """Catches several --render-seed values collapsing into one rendering (the same folder reused,
+    so no spread), the seed missing from the report's images, or the spread left off the summary."""
+    out = tmp_path / "report"
+    rc = main(["eval", "--scenes", str(scenes), "--spp", "2", "--out", str(out), "--work", str(tmp_path / "w"),
+               "--render-seed", "3", "4", "--no-oidn", "--no-classic", "--no-html", "--no-progress"])
+    assert rc == 0
+    doc = json.loads((out / "results.json").read_text())
+    assert sorted(im["seed"] for im in doc["images"]) == [3, 4]
+    (spread,) = doc["seed_spread"]
+    assert spread["method"] == "noisy" and spread["seeds"] == [3, 4] and spread["images_per_seed"] == 1
+    by_seed = {im["seed"]: im["id"] for im in doc["images"]}
+    relmse = {r["image"]: r["relmse"] for r in doc["rows"]}
+    assert spread["relmse"] == [relmse[by_seed[3]], relmse[by_seed[4]]]
+    assert spread["relmse"][0] != spread["relmse"][1]  # two renderings, not one twice
+    assert "Spread over the 2 render seeds (3, 4)" in capsys.readouterr().out
+    rc = main(["eval", "--scenes", str(scenes), "--spp", "2", "--out", str(out), "--work", str(tmp_path / "w"),
+               "--render-seed", "3", "3", "--no-oidn", "--no-classic", "--no-progress"])
+    assert rc != 0 and "--render-seed: a seed given twice (3 3)" in capsys.readouterr().err

@@ -11,7 +11,7 @@ A model is a registered name (its shipped weights), a run folder of `mcdenoise t
 `mcdenoise render`, or a folder of such image folders; only images with a reference count.
 --scenes DIR is a folder of Mitsuba 3 scenes (NAME/scene.xml) with references in --refs
 (NAME_<W>_spp<N>_d<D>.npy, default DIR/refs), as ../shared/valscenes: the inputs are rendered
-once (at the largest --spp, --render-seed, the reference's size and max depth) into --work and
+once per --render-seed (at the largest --spp, the reference's size and max depth) into --work and
 reused; the scenes folder is only read.
 REPORT_DIR gets results.json, results.csv and index.html (see docs/EVAL.md); the terminal gets
 the ranked summary the page leads with (per spp, best relMSE first, * marks each column's best).
@@ -35,7 +35,9 @@ def add_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--scenes", type=Path, help="folder of scene files with references (see below)")
     p.add_argument("--refs", type=Path, help="references of --scenes (default SCENES/refs)")
     p.add_argument("--scene-names", nargs="+", metavar="NAME", help="only these scenes of --scenes")
-    p.add_argument("--render-seed", type=int, default=7, help="sampler seed of the --scenes inputs (default 7)")
+    p.add_argument("--render-seed", type=int, nargs="+", default=[7], metavar="SEED",
+                   help="sampler seed(s) of the --scenes inputs (default 7); several render each scene once per seed, "
+                        "and the report adds the spread of the per-seed means")
     p.add_argument("--work", type=Path, default=Path("data/scene_inputs"),
                    help="where the --scenes inputs are rendered and kept (default data/scene_inputs)")
     p.add_argument("--out", type=Path, required=True, help="report folder (an earlier report there is replaced)")
@@ -74,8 +76,11 @@ def run(args: argparse.Namespace) -> int:
         if not args.spp:
             raise EvalError("--scenes needs --spp")
         cases = find_scene_cases(args.scenes, args.refs, names=args.scene_names)
-        data += [str(p) for p in prepare_scene_inputs(cases, args.work, spp=max(args.spp), seed=args.render_seed,
-                                                      progress=not args.no_progress)]
+        if len(set(args.render_seed)) != len(args.render_seed):
+            raise EvalError(f"--render-seed: a seed given twice ({' '.join(map(str, args.render_seed))})")
+        for seed in args.render_seed:
+            data += [str(p) for p in prepare_scene_inputs(cases, args.work, spp=max(args.spp), seed=seed,
+                                                          progress=not args.no_progress)]
     if not data:
         raise EvalError("nothing to evaluate: give --data DIR ... or --scenes DIR")
     argv = sys.argv[1:] if Path(sys.argv[0]).name == "mcdenoise" and sys.argv[1:2] == ["eval"] else None
@@ -122,7 +127,7 @@ def _command_from(args: argparse.Namespace) -> str:
         parts += ["--data", *args.data]
     if args.scenes is not None:
         parts += ["--scenes", str(args.scenes)] + (["--refs", str(args.refs)] if args.refs else [])
-        parts += (["--scene-names", *args.scene_names] if args.scene_names else []) + ["--render-seed", str(args.render_seed)]
+        parts += (["--scene-names", *args.scene_names] if args.scene_names else []) + ["--render-seed", *map(str, args.render_seed)]
     parts += ["--split", args.split, "--spp", *map(str, args.spp), "--out", str(args.out)]
     if args.no_oidn:
         parts.append("--no-oidn")

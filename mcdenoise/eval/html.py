@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 
 from mcdenoise.eval.metrics import tonemap
+from mcdenoise.eval.seeds import spread_text
 from mcdenoise.io.exr import write_png
 
 __all__ = ["CROP", "ERR_RANGE", "CropWriter", "write_report", "relmse_map"]
@@ -335,6 +336,8 @@ def write_report(root: Path, doc: dict[str, Any], crops: CropWriter) -> Path:
     ]
     if n_sub and not same:
         parts += ["<h3>Depth-of-field / motion-blur images</h3>", summary_html(doc, "dof_motion", note=False)]
+    if doc.get("seed_spread"):
+        parts += ["<h3>Spread over render seeds</h3>", f"<pre>{e(spread_text(doc['seed_spread']))}</pre>"]
     if doc["notes"]:
         parts.append("<details><summary>notes</summary><ul>" + "".join(f"<li>{e(n)}</li>" for n in doc["notes"])
                      + "</ul></details>")

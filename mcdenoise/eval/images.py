@@ -29,7 +29,7 @@ class EvalImage:
     def to_json(self) -> dict[str, Any]:
         m = self.folder.meta
         return {"id": self.id, "path": str(self.folder.path), "data": self.data, "scene": m.scene,
-                "width": m.width, "height": m.height, "spp": m.spp, "reference_spp": m.reference_spp,
+                "width": m.width, "height": m.height, "spp": m.spp, "seed": m.seed, "reference_spp": m.reference_spp,
                 "effects": self.effects}
 
 

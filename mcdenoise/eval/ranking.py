@@ -11,6 +11,8 @@ from __future__ import annotations
 import html
 from typing import Any
 
+from mcdenoise.eval.seeds import spread_text
+
 __all__ = ["COLUMNS", "ranked", "timing_note", "summary_text", "summary_html", "same_images"]
 
 #: (key, header, better: "min" or "max", format) of the ranked table, in order.
@@ -111,6 +113,8 @@ def terminal_summary(doc: dict[str, Any]) -> str:
     text = summary_text(doc)
     if any(s["subset"] == "dof_motion" for s in doc["summary"]) and not same_images(doc):
         text += "\n\nDepth-of-field / motion-blur images only:\n" + summary_text(doc, "dof_motion").rsplit("\n", 1)[0]
+    if doc.get("seed_spread"):
+        text += "\n\n" + spread_text(doc["seed_spread"])
     return text
 
 

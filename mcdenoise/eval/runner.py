@@ -37,6 +37,7 @@ from mcdenoise.eval.methods import Inputs, Method
 from mcdenoise.eval.metrics import METRICS
 from mcdenoise.eval.provenance import provenance
 from mcdenoise.eval.scores import CSV_FIELDS, SUBSETS, image_metrics, summarize, write_csv
+from mcdenoise.eval.seeds import seed_spread
 from mcdenoise.io.atomic import atomic_dir, atomic_file
 
 __all__ = ["EvalError", "EvalImage", "evaluate", "collect_images", "image_effects", "build_methods", "summarize",
@@ -263,6 +264,7 @@ def _evaluate(models: Sequence[str | os.PathLike], data_list: list[Any], out: Pa
             "rows": rows,
             "summary": summarize(rows, images, names, ks, metric_names),
         }
+        doc["seed_spread"] = seed_spread(rows, doc["images"])
         with atomic_file(tmp / "results.json") as f:
             f.write_text(json.dumps(doc, indent=1, allow_nan=False) + "\n")
         write_csv(tmp / "results.csv", rows, metric_names)

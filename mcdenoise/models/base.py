@@ -65,7 +65,8 @@ class Denoiser(nn.Module):
             return out
         from mcdenoise.models.consistency import pixel_consistency_clamp
 
-        return pixel_consistency_clamp(out, mean, var_mean, n, getattr(self.config, "consistency", None))
+        return pixel_consistency_clamp(out, mean, var_mean, n, getattr(self.config, "consistency", None),
+                                       getattr(self.config, "consistency_min_spp", 2))
 
     def conv_trunks(self) -> list[str]:
         """Dotted names of the submodules that may run in bfloat16 and channels_last at inference

@@ -65,24 +65,24 @@ def sample_bounds(samples: torch.Tensor, k: float) -> tuple[torch.Tensor, torch.
     return bounds(mean, var_mean, s, k)
 
 
-def consistency_clamp(out: torch.Tensor, samples: torch.Tensor, k: float | None) -> torch.Tensor:
+def consistency_clamp(out: torch.Tensor, samples: torch.Tensor, k: float | None, min_spp: int = 2) -> torch.Tensor:
     """``out`` (B, 3, H, W) clamped to ``k`` shrunk standard errors around the mean of ``samples``
-    (B, S, 3, H, W); unchanged for ``k`` None or a single sample."""
-    if k is None or samples.shape[1] < 2:
+    (B, S, 3, H, W); unchanged for ``k`` None or fewer than ``max(2, min_spp)`` samples."""
+    if k is None or samples.shape[1] < max(2, min_spp):
         return out
     lo, hi = sample_bounds(samples.to(out.dtype), k)
     return torch.minimum(torch.maximum(out, lo), hi)
 
 
 def pixel_consistency_clamp(out: np.ndarray, mean: np.ndarray, var_mean: np.ndarray | None, n: int,
-                            k: float | None) -> np.ndarray:
+                            k: float | None, min_spp: int = 2) -> np.ndarray:
     """A pixel model's ``out`` (3, H, W) clamped like :func:`consistency_clamp`, from the input's
     per-pixel ``mean`` and variance of the mean ``var_mean`` (3, H, W) over ``n`` samples.
 
     A pixel model sees no samples, so inference applies this after the model where the input has
     the statistics (an image folder of ``mcdenoise render``, or its first k samples in ``eval``).
-    Unchanged for ``k`` None, no variance (a Blender file, a plain colour EXR) or ``n < 2``."""
-    if k is None or var_mean is None or n < 2:
+    Unchanged for ``k`` None, no variance (a Blender file, a plain colour EXR) or ``n < max(2, min_spp)``."""
+    if k is None or var_mean is None or n < max(2, min_spp):
         return out
     def t(a: np.ndarray) -> torch.Tensor:
         return torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32))[None]
@@ -91,7 +91,10 @@ def pixel_consistency_clamp(out: np.ndarray, mean: np.ndarray, var_mean: np.ndar
     return torch.minimum(torch.maximum(t(out), lo), hi)[0].numpy()
 
 
-def check_consistency(model: str, k: float | None) -> None:
-    """Refuse a ``consistency`` that is not None or > 0 (one line naming the model)."""
+def check_consistency(model: str, k: float | None, min_spp: int = 2) -> None:
+    """Refuse a ``consistency`` that is not None or > 0, or a ``consistency_min_spp`` below 1 (one
+    line naming the model)."""
     if k is not None and not k > 0:
         raise ValueError(f"{model}: consistency must be a number of standard errors > 0 or None, got {k}")
+    if isinstance(min_spp, bool) or not isinstance(min_spp, int) or min_spp < 1:
+        raise ValueError(f"{model}: consistency_min_spp must be a whole number of samples >= 1, got {min_spp!r}")

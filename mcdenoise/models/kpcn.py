@@ -90,6 +90,12 @@ class KPCNConfig:
     where the input has per-pixel variances (:func:`mcdenoise.models.consistency.pixel_consistency_clamp`,
     applied by ``denoise`` and ``eval`` after the model; not in the paper). Set after training, on
     held-out images; None: no clamp."""
+    consistency_min_spp: int = 2
+    """The fewest samples per pixel at which ``consistency`` acts (2: whenever there is a variance).
+    Why a higher count: at 4 spp a pixel's variance has 3 degrees of freedom and the clamp moved
+    the layer models' held-out mean PSNR by a few thousandths of a dB either way, while at 8-16 spp
+    it is what lifts it (campaigns 19-23, docs/models/consistency.md). Set after training, with
+    ``consistency``."""
 
     def feature_channels(self) -> tuple[str, str, str]:
         """Names of the (albedo, normal, depth) buffers the features read."""
@@ -210,7 +216,7 @@ class KPCN(Denoiser):
         if not config.depth_scale > 0:
             raise ValueError(f"KPCN: depth_scale must be > 0, got {config.depth_scale}")
         check_key("KPCN", config.autoexposure)
-        check_consistency("KPCN", config.consistency)
+        check_consistency("KPCN", config.consistency, config.consistency_min_spp)
         config.feature_channels()  # refuses an unknown feature_hit now, not at the first batch
         if config.variance not in ("input", "window") or config.variance_window < 1 or config.variance_window % 2 == 0:
             raise ValueError(f"KPCN: variance must be 'input' or 'window' with an odd variance_window, got {config}")

@@ -73,6 +73,12 @@ class LayerConfig:
     """Clamp each output pixel to this many (shrunk) standard errors around the mean of its own
     samples (:mod:`mcdenoise.models.consistency`; not in the paper). Set after training, on held-out
     images; None: no clamp."""
+    consistency_min_spp: int = 2
+    """The fewest samples per pixel at which ``consistency`` acts (2: whenever there is a variance).
+    Why a higher count: at 4 spp a pixel's variance has 3 degrees of freedom and the clamp moved
+    the layer models' held-out mean PSNR by a few thousandths of a dB either way, while at 8-16 spp
+    it is what lifts it (campaigns 19-23, docs/models/consistency.md). Set after training, with
+    ``consistency``."""
 
 
 def _paper_layer(**kw: object) -> LayerConfig:

@@ -105,6 +105,12 @@ class SBMCConfig:
     """Clamp each output pixel to this many (shrunk) standard errors around the mean of its own
     samples (:mod:`mcdenoise.models.consistency`; not in the paper). Set after training, on held-out
     images; None: no clamp."""
+    consistency_min_spp: int = 2
+    """The fewest samples per pixel at which ``consistency`` acts (2: whenever there is a variance).
+    Why a higher count: at 4 spp a pixel's variance has 3 degrees of freedom and the clamp moved
+    the layer models' held-out mean PSNR by a few thousandths of a dB either way, while at 8-16 spp
+    it is what lifts it (campaigns 19-23, docs/models/consistency.md). Set after training, with
+    ``consistency``."""
 
 
 def _paper(**kw: object) -> SBMCConfig:
@@ -144,7 +150,7 @@ class SBMC(Denoiser):
         if cfg.steps < 1 or cfg.fc_layers < 1:
             raise ValueError("steps and fc_layers must be >= 1")
         check_key("SBMC", cfg.autoexposure)
-        check_consistency("SBMC", cfg.consistency)
+        check_consistency("SBMC", cfg.consistency, cfg.consistency_min_spp)
         self.sample_features = sum(num_components(c) for c in cfg.channels)
         n_in = (2 * self.sample_features if not cfg.per_sample else self.sample_features) + len(SCENE_FEATURES)
         d = cfg.embed_width
@@ -318,7 +324,7 @@ class SBMC(Denoiser):
         inner = fill_emitters(batch, emitters)
         out = self._denoise(inner if s is None else scale_batch(inner, s))  # type: ignore[arg-type]
         out = pass_through(unscale(out, s), batch["radiance"], emitters)
-        return consistency_clamp(out, batch["radiance"], self.config.consistency)
+        return consistency_clamp(out, batch["radiance"], self.config.consistency, self.config.consistency_min_spp)
 
     def _denoise(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
         cfg = self.config

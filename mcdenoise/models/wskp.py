@@ -195,6 +195,12 @@ class WSKPConfig:
     where the input has per-pixel variances (:func:`mcdenoise.models.consistency.pixel_consistency_clamp`,
     applied by ``denoise`` and ``eval`` after the model; not in the paper). Set after training, on
     held-out images; None: no clamp."""
+    consistency_min_spp: int = 2
+    """The fewest samples per pixel at which ``consistency`` acts (2: whenever there is a variance).
+    Why a higher count: at 4 spp a pixel's variance has 3 degrees of freedom and the clamp moved
+    the layer models' held-out mean PSNR by a few thousandths of a dB either way, while at 8-16 spp
+    it is what lifts it (campaigns 19-23, docs/models/consistency.md). Set after training, with
+    ``consistency``."""
 
 
 class WSKP(Denoiser):
@@ -207,7 +213,7 @@ class WSKP(Denoiser):
         if config.blocks < 1 or not config.kernel_sizes:
             raise ValueError(f"WSKP: need blocks >= 1 and at least one kernel size, got {config}")
         check_key("WSKP", config.autoexposure)
-        check_consistency("WSKP", config.consistency)
+        check_consistency("WSKP", config.consistency, config.consistency_min_spp)
         n = len(config.kernel_sizes)
         chans = [INPUT_CHANNELS] + [config.channels] * (config.blocks - 1) + [2 * n]
         # The last block outputs logits (importance and fusion), so no ReLU there.
