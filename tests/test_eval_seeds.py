@@ -58,3 +58,15 @@ def test_text_gives_the_standard_deviation_and_the_ratio_to_the_baseline() -> No
     assert "PSNR 21.00 +- 1.41" in line
     assert "x oidn-high 1.00-2.00 (of the means: 1.20)" in line
     assert spread_text([]) == ""
+
+
+def test_markdown_table_has_a_row_per_method_and_spp() -> None:
+    """Catches the RESULTS.md block losing the spread (no table) or a row per seed instead of per method."""
+    from mcdenoise.eval.seeds import spread_markdown
+
+    rows, images = _doc({("m", 4, "x", 7): (2.0, 20.0), ("m", 4, "x", 8): (4.0, 22.0),
+                         ("oidn-high", 4, "x", 7): (1.0, 30.0), ("oidn-high", 4, "x", 8): (4.0, 30.0)})
+    md = spread_markdown(seed_spread(rows, images))
+    table = [l for l in md if l.startswith("| 4 |")]
+    assert len(table) == 2 and "| 1.00-2.00 | 1.20 |" in table[0] and table[1].endswith("- | - |")
+    assert spread_markdown([]) == []

@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from mcdenoise.eval.docblock import replace_block
+from mcdenoise.eval.seeds import spread_markdown
 
 __all__ = ["FLOOR", "FLOOR_SPP", "render_block", "write_results_md"]
 
@@ -156,6 +157,8 @@ def render_block(doc: dict[str, Any]) -> str:
     if models:
         lines += ["", "relMSE per model: improvement over the noisy input and ratio to OIDN `high` "
                       "(below 1 beats OIDN).", "", *models, "", *_floors(doc)]
+    if doc.get("seed_spread"):
+        lines += ["", *spread_markdown(doc["seed_spread"])]
     from mcdenoise.eval.ranking import same_images
 
     if n_sub and same_images(doc):

@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["seed_spread", "spread_text"]
+__all__ = ["seed_spread", "spread_rows", "spread_text", "spread_markdown"]
 
 
 def seed_spread(rows: list[dict[str, Any]], images: list[dict[str, Any]]) -> list[dict[str, Any]]:
@@ -54,23 +54,54 @@ def seed_spread(rows: list[dict[str, Any]], images: list[dict[str, Any]]) -> lis
     return out
 
 
-def spread_text(spread: list[dict[str, Any]], baseline: str = "oidn-high") -> str:
-    """The spread as plain text, one line per method and spp: mean, sample standard deviation and
-    range over the seeds of the per-seed means, and (where ``baseline`` was run) the range of the
-    per-seed ratio of relMSE to the baseline's. Empty for an empty spread."""
-    if not spread:
-        return ""
-    seeds = spread[0]["seeds"]
+def spread_rows(spread: list[dict[str, Any]], baseline: str = "oidn-high") -> list[dict[str, Any]]:
+    """Per entry of :func:`seed_spread`: the mean, sample standard deviation and range over the seeds
+    of the per-seed relMSE means, the same for PSNR, and (where ``baseline`` was run at that spp,
+    for every other method) the range of the per-seed ratio of relMSE to the baseline's and the
+    ratio of the two means over seeds."""
     base = {s["spp"]: np.array(s["relmse"]) for s in spread if s["method"] == baseline}
-    width = max(len(s["method"]) for s in spread)
-    lines = [f"Spread over the {len(seeds)} render seeds ({', '.join(map(str, seeds))}): the mean over each seed's "
-             f"{spread[0]['images_per_seed']} image(s), then mean +- standard deviation [range] of those means:"]
+    out = []
     for s in spread:
         r, p = np.array(s["relmse"]), np.array(s["psnr"])
-        line = (f"  {s['spp']:>3} spp  {s['method']:<{width}}  relMSE {r.mean():.4f} +- {r.std(ddof=1):.4f} "
-                f"[{r.min():.4f}-{r.max():.4f}]  PSNR {p.mean():.2f} +- {p.std(ddof=1):.2f}")
+        row = {"method": s["method"], "spp": s["spp"], "relmse": r.mean(), "relmse_sd": r.std(ddof=1),
+               "relmse_min": r.min(), "relmse_max": r.max(), "psnr": p.mean(), "psnr_sd": p.std(ddof=1)}
         if s["method"] != baseline and s["spp"] in base:
             q = r / base[s["spp"]]
-            line += f"  x {baseline} {q.min():.2f}-{q.max():.2f} (of the means: {r.mean() / base[s['spp']].mean():.2f})"
+            row.update(ratio_min=q.min(), ratio_max=q.max(), ratio_of_means=r.mean() / base[s["spp"]].mean())
+        out.append(row)
+    return out
+
+
+def _intro(spread: list[dict[str, Any]]) -> str:
+    seeds = spread[0]["seeds"]
+    return (f"Spread over the {len(seeds)} render seeds ({', '.join(map(str, seeds))}): the mean over each seed's "
+            f"{spread[0]['images_per_seed']} image(s), then mean +- standard deviation [range] of those means")
+
+
+def spread_text(spread: list[dict[str, Any]], baseline: str = "oidn-high") -> str:
+    """:func:`spread_rows` as plain text, one line per method and spp; empty for an empty spread."""
+    if not spread:
+        return ""
+    width = max(len(s["method"]) for s in spread)
+    lines = [_intro(spread) + ":"]
+    for r in spread_rows(spread, baseline):
+        line = (f"  {r['spp']:>3} spp  {r['method']:<{width}}  relMSE {r['relmse']:.4f} +- {r['relmse_sd']:.4f} "
+                f"[{r['relmse_min']:.4f}-{r['relmse_max']:.4f}]  PSNR {r['psnr']:.2f} +- {r['psnr_sd']:.2f}")
+        if "ratio_min" in r:
+            line += f"  x {baseline} {r['ratio_min']:.2f}-{r['ratio_max']:.2f} (of the means: {r['ratio_of_means']:.2f})"
         lines.append(line)
     return "\n".join(lines)
+
+
+def spread_markdown(spread: list[dict[str, Any]], baseline: str = "oidn-high") -> list[str]:
+    """:func:`spread_rows` as Markdown lines (an intro and a table); empty for an empty spread."""
+    if not spread:
+        return []
+    lines = [_intro(spread) + f"; the last columns divide each seed's relMSE by {baseline}'s on the same seed.", "",
+             f"| spp | method | relMSE | range | PSNR | x {baseline}, per seed | x {baseline}, of the means |",
+             "|---|---|---|---|---|---|---|"]
+    for r in spread_rows(spread, baseline):
+        ratio = (f"{r['ratio_min']:.2f}-{r['ratio_max']:.2f} | {r['ratio_of_means']:.2f}" if "ratio_min" in r else "- | -")
+        lines.append(f"| {r['spp']} | {r['method']} | {r['relmse']:.4g} +- {r['relmse_sd']:.2g} | "
+                     f"{r['relmse_min']:.4g}-{r['relmse_max']:.4g} | {r['psnr']:.2f} +- {r['psnr_sd']:.2f} | {ratio} |")
+    return lines
