@@ -1,41 +1,70 @@
-"""Two models side by side on an eval report of the third-party scenes: means, per-scene ratios to
+"""Two models side by side on eval reports of the third-party scenes: means, per-scene ratios to
 OIDN high, how many scenes the new one improves, and where either is worse than the noisy input.
+With several render seeds (``mcdenoise eval --scenes ... --render-seed 7 8 9``), also the means of
+each seed and on how many seeds the new model's mean is the better one.
 
     python scripts/compare_on_valscenes.py reports/val_RUN/results.json OLD NEW [--baseline oidn-high]
+    python scripts/compare_on_valscenes.py reports/new/results.json reports/old/results.json OLD NEW
+
+Several reports are merged (the first one to hold an image, spp and method wins), so a model
+scored alone can be compared with one scored in another run on the same inputs.
 """
 from __future__ import annotations
 
 import argparse
 import collections
 import json
+import re
 
 import numpy as np
 
 
+def _seed(image: str, seeds: dict[str, int | None]) -> int | None:
+    if image in seeds:
+        return seeds[image]
+    m = re.search(r"_seed(\d+)$", image)  # reports written before images carried their seed
+    return int(m.group(1)) if m else None
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("results")
-    ap.add_argument("old")
-    ap.add_argument("new")
+    ap.add_argument("args", nargs="+", metavar="RESULTS_JSON... OLD NEW")
     ap.add_argument("--baseline", default="oidn-high")
     a = ap.parse_args()
-    rows = json.load(open(a.results))["rows"]
-    d: dict[tuple[str, int], dict[str, tuple[float, float]]] = collections.defaultdict(dict)
-    for x in rows:
-        d[(x["image"].split("_")[0], x["spp"])][x["method"]] = (x["relmse"], x["psnr"])
-    for spp in sorted({k[1] for k in d}):
-        sc = {k[0]: v for k, v in d.items() if k[1] == spp}
-        for m in (a.old, a.new, a.baseline, "noisy"):
+    if len(a.args) < 3:
+        ap.error("give one or more results.json, then OLD and NEW")
+    *files, old, new = a.args
+    d: dict[tuple[str, int | None, int], dict[str, tuple[float, float]]] = collections.defaultdict(dict)
+    for f in files:
+        doc = json.load(open(f))
+        seeds = {im["id"]: im.get("seed") for im in doc.get("images", []) if "seed" in im}
+        for x in doc["rows"]:
+            key = (x["image"].split("_")[0], _seed(x["image"], seeds), x["spp"])
+            d[key].setdefault(x["method"], (x["relmse"], x["psnr"]))
+    for spp in sorted({k[2] for k in d}):
+        sc = {k[:2]: v for k, v in d.items() if k[2] == spp and old in v and new in v}
+        for m in (old, new, a.baseline, "noisy"):
             if all(m in v for v in sc.values()):
                 print(f"{spp:>3} spp {m:<28} relMSE {np.mean([v[m][0] for v in sc.values()]):.4f}  "
                       f"PSNR {np.mean([v[m][1] for v in sc.values()]):.2f}")
-        better = sum(v[a.new][0] < v[a.old][0] for v in sc.values())
-        print(f"        {a.new} better than {a.old} on {better}/{len(sc)}")
-        for m in (a.old, a.new):
-            bad = [k for k, v in sorted(sc.items()) if v[m][0] > v["noisy"][0] or v[m][1] < v["noisy"][1]]
+        better = sum(v[new][0] < v[old][0] for v in sc.values())
+        print(f"        {new} better than {old} on {better}/{len(sc)} scene renderings")
+        for m in (old, new):
+            bad = [f"{k[0]}" + (f" (seed {k[1]})" if k[1] is not None else "") for k, v in sorted(sc.items(), key=str)
+                   if "noisy" in v and (v[m][0] > v["noisy"][0] or v[m][1] < v["noisy"][1])]
             print(f"        {m} worse than noisy on: {', '.join(bad) or 'none'}")
-        print("        x " + a.baseline + ": " + " ".join(
-            f"{k} {v[a.new][0] / v[a.baseline][0]:.2f} ({v[a.old][0] / v[a.baseline][0]:.2f})" for k, v in sorted(sc.items())))
+        seeds = sorted({k[1] for k in sc}, key=str)
+        if len(seeds) > 1:
+            per = {s: {m: np.mean([v[m] for k, v in sc.items() if k[1] == s], axis=0) for m in (old, new)} for s in seeds}
+            for s in seeds:
+                print(f"        seed {s}: {old} {per[s][old][0]:.4f} / {per[s][old][1]:.2f}  "
+                      f"{new} {per[s][new][0]:.4f} / {per[s][new][1]:.2f}")
+            print(f"        {new}'s mean better on {sum(per[s][new][0] < per[s][old][0] for s in seeds)}/{len(seeds)} "
+                  f"seeds in relMSE, {sum(per[s][new][1] > per[s][old][1] for s in seeds)}/{len(seeds)} in PSNR")
+        else:
+            print("        x " + a.baseline + ": " + " ".join(
+                f"{k[0]} {v[new][0] / v[a.baseline][0]:.2f} ({v[old][0] / v[a.baseline][0]:.2f})"
+                for k, v in sorted(sc.items(), key=str) if a.baseline in v))
 
 
 if __name__ == "__main__":
