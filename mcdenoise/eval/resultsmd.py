@@ -137,6 +137,33 @@ def _per_image(doc: dict[str, Any]) -> list[str]:
     return out
 
 
+def _worse_than_noisy(doc: dict[str, Any]) -> list[str]:
+    """One line per spp: every (method, image) whose relMSE is above or PSNR below the noisy
+    input's on the same image, or "none"; for evaluations too large for per-image tables (issue
+    19 asks every shipped model to beat the noisy input on every scene, and with several render
+    seeds every rendering of every scene)."""
+    if len(doc["images"]) <= PER_IMAGE_MAX or "noisy" not in {m["name"] for m in doc["methods"]}:
+        return []
+    by: dict[tuple[int, str], dict[str, tuple[Any, Any]]] = {}
+    for r in doc["rows"]:
+        by.setdefault((int(r["spp"]), str(r["image"])), {})[r["method"]] = (r.get("relmse"), r.get("psnr"))
+    out = [""]
+    for spp in doc["config"]["spp"]:
+        bad: dict[str, list[str]] = {}
+        for (k, img), row in sorted(by.items()):
+            if k != spp or "noisy" not in row:
+                continue
+            nr, npsnr = row["noisy"]
+            for m, (r, p) in row.items():
+                if m != "noisy" and ((r is not None and nr is not None and r > nr) or
+                                     (p is not None and npsnr is not None and p < npsnr)):
+                    bad.setdefault(m, []).append(Path(img).name)
+        text = "; ".join(f"{m} on {', '.join(v)}" for m, v in sorted(bad.items())) or "none"
+        out.append(f"Worse than the noisy input in relMSE or PSNR at {spp} spp (of {len({i for k, i in by if k == spp})} "
+                   f"images): {text}.")
+    return out
+
+
 def render_block(doc: dict[str, Any]) -> str:
     """The Markdown of one evaluation: provenance, mean tables, model ratios, floors, DoF subset."""
     p = doc["provenance"]
@@ -156,7 +183,7 @@ def render_block(doc: dict[str, Any]) -> str:
     models = _model_table(doc, "all")
     if models:
         lines += ["", "relMSE per model: improvement over the noisy input and ratio to OIDN `high` "
-                      "(below 1 beats OIDN).", "", *models, "", *_floors(doc)]
+                      "(below 1 beats OIDN).", "", *models, "", *_floors(doc), *_worse_than_noisy(doc)]
     if doc.get("seed_spread"):
         lines += ["", *spread_markdown(doc["seed_spread"])]
     from mcdenoise.eval.ranking import same_images
