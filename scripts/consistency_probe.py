@@ -10,7 +10,8 @@ without the clamp.
     python scripts/consistency_probe.py data/detail_ref data/detail_ref2 data/rich_ref3 data/rich_val --models sbmc-small layer-small --spp 4 8 16 --ks 1.5 2 3 4
 
 A ``k`` written ``K@N`` (``4@8``) clamps only from ``N`` samples per pixel (the configuration's
-``consistency_min_spp``): below it the output is the unclamped one.
+``consistency_min_spp``): below it the output is the unclamped one. ``Km`` (``4m``, ``4m@8``) takes
+the median of the 5x5 box's variances instead of their mean (``consistency_box``).
 """
 from __future__ import annotations
 
@@ -27,14 +28,16 @@ from mcdenoise.models.consistency import consistency_clamp, pixel_consistency_cl
 from mcdenoise.models.weights import load_denoiser
 
 
-def parse_k(text: str) -> tuple[float, int]:
-    """``"4"`` -> (4.0, 2); ``"4@8"`` -> (4.0, 8): k and the fewest spp it acts at."""
+def parse_k(text: str) -> tuple[float, int, str]:
+    """``"4"`` -> (4.0, 2, "mean"); ``"4m@8"`` -> (4.0, 8, "median"): k, the fewest spp it acts
+    at (``consistency_min_spp``) and the neighbourhood's statistic (``consistency_box``)."""
     k, _, n = text.partition("@")
-    return float(k), int(n) if n else 2
+    box = "median" if k.endswith("m") else "mean"
+    return float(k.removesuffix("m")), int(n) if n else 2, box
 
 
-def k_label(k: float, first: int) -> str:
-    return f"k {k:g}" + (f"@{first}" if first != 2 else "")
+def k_label(k: float, first: int, box: str) -> str:
+    return f"k {k:g}" + ("m" if box == "median" else "") + (f"@{first}" if first != 2 else "")
 
 
 def main() -> None:
@@ -43,7 +46,7 @@ def main() -> None:
     ap.add_argument("--models", nargs="+", required=True)
     ap.add_argument("--spp", nargs="+", type=int, default=[4, 8, 16])
     ap.add_argument("--ks", nargs="+", type=parse_k, default=[parse_k(k) for k in ("1.5", "2", "2.5", "3", "4")],
-                    help="k, or K@N to clamp only from N spp (consistency_min_spp)")
+                    help="k, K@N to clamp only from N spp (consistency_min_spp), Km for the median box")
     ap.add_argument("--prior", type=float, default=None,
                     help="weight of the neighbourhood's variance in samples (default: the module's PRIOR; 0: none)")
     a = ap.parse_args()
@@ -70,12 +73,12 @@ def main() -> None:
                 out = torch.from_numpy(meth.run(batch))[None]
                 r = res.setdefault(meth.name, {})
                 r.setdefault("none", []).append((relmse(out[0].numpy(), ref), psnr(out[0].numpy(), ref), r_noisy, p_noisy))
-                for k, first in a.ks:
+                for k, first, box in a.ks:
                     if meth.model.input_kind == "samples":
-                        c = consistency_clamp(out, batch["radiance"], k, first)[0].numpy()
+                        c = consistency_clamp(out, batch["radiance"], k, first, box)[0].numpy()
                     else:  # what denoise and eval do after a pixel model: the k samples' statistics
-                        c = pixel_consistency_clamp(out[0].numpy(), mu, x.guides["radiance_variance"], spp, k, first)
-                    r.setdefault(k_label(k, first), []).append((relmse(c, ref), psnr(c, ref), r_noisy, p_noisy))
+                        c = pixel_consistency_clamp(out[0].numpy(), mu, x.guides["radiance_variance"], spp, k, first, box)
+                    r.setdefault(k_label(k, first, box), []).append((relmse(c, ref), psnr(c, ref), r_noisy, p_noisy))
         for name, r in res.items():
             for key, v in r.items():
                 v = np.array(v)

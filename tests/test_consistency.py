@@ -23,12 +23,19 @@ def _samples(s: int = 4, h: int = 9, w: int = 11, seed: int = 0) -> torch.Tensor
     return x
 
 
-def test_bounds_match_a_plain_loop() -> None:
+@pytest.mark.parametrize("box", ["mean", "median"])
+def test_bounds_match_a_plain_loop(box: str, monkeypatch: pytest.MonkeyPatch) -> None:
     """Catches a biased variance (S instead of S - 1), zero padding at the border instead of the
-    image's own pixels, or the shrinkage weights swapped: the bounds equal a per-pixel loop in float64."""
+    image's own pixels, or the shrinkage weights swapped; for the median box, bands of rows that
+    lose the box's rows above or below at their seams (bands of 4 rows here): the bounds equal a
+    per-pixel loop in float64."""
+    from mcdenoise.models import consistency
+
+    monkeypatch.setattr(consistency, "MEDIAN_BAND", 4)
     x = _samples()
     k = 2.5
-    lo, hi = sample_bounds(x, k)
+    lo, hi = sample_bounds(x, k, box)
+    stat = np.mean if box == "mean" else np.median
     a = x[0].numpy()
     s, c, h, w = a.shape
     var = a.var(axis=0, ddof=1)
@@ -38,7 +45,7 @@ def test_bounds_match_a_plain_loop() -> None:
             for xx in range(w):
                 box = [var[ch, min(max(y + dy, 0), h - 1), min(max(xx + dx, 0), w - 1)]
                        for dy in range(-r, r + 1) for dx in range(-r, r + 1)]
-                shrunk = ((s - 1) * var[ch, y, xx] + PRIOR * np.mean(box)) / (s - 1 + PRIOR)
+                shrunk = ((s - 1) * var[ch, y, xx] + PRIOR * stat(box)) / (s - 1 + PRIOR)
                 half = k * np.sqrt(shrunk / s)
                 m = a[:, ch, y, xx].mean()
                 assert lo[0, ch, y, xx].item() == pytest.approx(m - half, rel=1e-12, abs=1e-12)
@@ -154,6 +161,42 @@ def test_pixel_clamp_min_spp_matches_the_sample_clamp() -> None:
         assert np.array_equal(got, out[0].numpy()) == (s < 8)
 
 
+def test_median_box_keeps_a_light_from_loosening_the_dark_pixels_beside_it() -> None:
+    """The reason for the median box: a dark pixel whose samples all agree beside a bright, noisy
+    column gets a bound from its dark neighbours, not from the column. Catches a median taken over
+    the wrong axis (samples or channels) or a box that still averages: with the mean box the
+    bound is loose, with the median box it is the dark side's."""
+    g = torch.Generator().manual_seed(3)
+    x = torch.zeros(1, 4, 3, 9, 9, dtype=torch.float64)
+    x[..., 4:] = 0.1 * torch.rand(1, 4, 3, 9, 5, generator=g, dtype=torch.float64)  # dim, slightly noisy
+    x[..., 0] = 1000 * torch.rand(1, 4, 3, 9, generator=g, dtype=torch.float64)  # a bright, noisy column
+    lo_mean, hi_mean = sample_bounds(x, 3.0, "mean")
+    lo_med, hi_med = sample_bounds(x, 3.0, "median")
+    # Pixel (4, 2): its four samples are all 0; the column is two pixels away, inside its box.
+    assert hi_mean[0, :, 4, 2].min().item() > 100
+    assert hi_med[0, :, 4, 2].max().item() < 1e-9  # most of its box is exactly dark: a median of 0
+    assert torch.all(hi_med[0, :, :, 0] > 100)  # the column keeps the loose bound of its own variance
+
+
+def test_median_box_gradients() -> None:
+    """gradcheck in float64 through the median box (the selected element carries the gradient)."""
+    x = _samples(s=3, h=6, w=6, seed=9).requires_grad_()
+    out = (torch.rand(1, 3, 6, 6, dtype=torch.float64) * 2).requires_grad_()
+    assert torch.autograd.gradcheck(lambda o, s: consistency_clamp(o, s, 1.5, 2, "median"), (out, x))
+
+
+def test_median_box_tiles_match_the_whole_image() -> None:
+    """Catches a median box that reads past the tile overlap (its reach is the mean box's, 2 px)."""
+    torch.manual_seed(0)
+    model = build_model("layer", "small", autoexposure=0.18, consistency=1.5, consistency_box="median").eval()
+    assert_sample_tiles_match_whole(model, spp=3)
+
+
+def test_refuses_an_unknown_box() -> None:
+    with pytest.raises(ValueError, match="consistency_box"):
+        build_model("sbmc", "small", consistency=2.0, consistency_box="max")
+
+
 @pytest.mark.parametrize("bad", [0, -2, 2.5, True])
 def test_refuses_a_min_spp_that_is_not_a_count(bad) -> None:
     with pytest.raises(ValueError, match="consistency_min_spp"):
@@ -174,7 +217,8 @@ def test_tiles_match_the_whole_image() -> None:
     assert_sample_tiles_match_whole(model, spp=3)
 
 
-def test_pixel_form_equals_the_sample_form() -> None:
+@pytest.mark.parametrize("box", ["mean", "median"])
+def test_pixel_form_equals_the_sample_form(box: str) -> None:
     """A pixel model's clamp (from the input's per-pixel mean and variance of the mean) and a sample
     model's (from the samples) are one rule: catches the two paths drifting apart (a variance of
     the samples where the variance of the mean is meant, other shrinkage weights)."""
@@ -184,8 +228,8 @@ def test_pixel_form_equals_the_sample_form() -> None:
     x = _samples(s=6, seed=7).float()
     out = torch.rand(1, 3, 9, 11) * 3
     mean, var_mean = pixel_stats(x[0].numpy())
-    got = pixel_consistency_clamp(out[0].numpy(), mean, var_mean, 6, 2.0)
-    np.testing.assert_allclose(got, consistency_clamp(out, x, 2.0)[0].numpy(), rtol=1e-5, atol=1e-6)
+    got = pixel_consistency_clamp(out[0].numpy(), mean, var_mean, 6, 2.0, 2, box)
+    np.testing.assert_allclose(got, consistency_clamp(out, x, 2.0, 2, box)[0].numpy(), rtol=1e-5, atol=1e-6)
 
 
 def _wskp_inputs(with_variance: bool):

@@ -66,7 +66,8 @@ class Denoiser(nn.Module):
         from mcdenoise.models.consistency import pixel_consistency_clamp
 
         return pixel_consistency_clamp(out, mean, var_mean, n, getattr(self.config, "consistency", None),
-                                       getattr(self.config, "consistency_min_spp", 2))
+                                       getattr(self.config, "consistency_min_spp", 2),
+                                       getattr(self.config, "consistency_box", "mean"))
 
     def conv_trunks(self) -> list[str]:
         """Dotted names of the submodules that may run in bfloat16 and channels_last at inference

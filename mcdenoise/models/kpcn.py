@@ -96,6 +96,10 @@ class KPCNConfig:
     the layer models' held-out mean PSNR by a few thousandths of a dB either way, while at 8-16 spp
     it is what lifts it (campaigns 19-23, docs/models/consistency.md). Set after training, with
     ``consistency``."""
+    consistency_box: str = "mean"
+    """The neighbourhood variance the clamp shrinks a pixel's own toward: the ``"mean"`` or the
+    ``"median"`` over its 5x5 box (:func:`mcdenoise.models.consistency.bounds`). Set after
+    training, with ``consistency`` (campaign 23)."""
 
     def feature_channels(self) -> tuple[str, str, str]:
         """Names of the (albedo, normal, depth) buffers the features read."""
@@ -216,7 +220,7 @@ class KPCN(Denoiser):
         if not config.depth_scale > 0:
             raise ValueError(f"KPCN: depth_scale must be > 0, got {config.depth_scale}")
         check_key("KPCN", config.autoexposure)
-        check_consistency("KPCN", config.consistency, config.consistency_min_spp)
+        check_consistency("KPCN", config.consistency, config.consistency_min_spp, config.consistency_box)
         config.feature_channels()  # refuses an unknown feature_hit now, not at the first batch
         if config.variance not in ("input", "window") or config.variance_window < 1 or config.variance_window % 2 == 0:
             raise ValueError(f"KPCN: variance must be 'input' or 'window' with an odd variance_window, got {config}")

@@ -94,7 +94,7 @@ class LayerDenoiser(Denoiser):
         if cfg.layers < 1:
             raise ValueError(f"layers must be >= 1, got {cfg.layers}")
         check_key("layer", cfg.autoexposure)
-        check_consistency("layer", cfg.consistency, cfg.consistency_min_spp)
+        check_consistency("layer", cfg.consistency, cfg.consistency_min_spp, cfg.consistency_box)
         if cfg.compositing not in ("alpha", "weighted"):
             raise ValueError(f"compositing must be 'alpha' or 'weighted', got {cfg.compositing!r}")
         if cfg.kernel_size % 2 != 1:
@@ -227,7 +227,8 @@ class LayerDenoiser(Denoiser):
         inner = fill_emitters(batch, emitters)
         out = self._denoise(inner if s is None else scale_batch(inner, s))  # type: ignore[arg-type]
         out = pass_through(unscale(out, s), batch["radiance"], emitters)
-        return consistency_clamp(out, batch["radiance"], self.config.consistency, self.config.consistency_min_spp)
+        return consistency_clamp(out, batch["radiance"], self.config.consistency, self.config.consistency_min_spp,
+                                 self.config.consistency_box)
 
     def _denoise(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
         cfg = self.config

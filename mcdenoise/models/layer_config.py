@@ -79,6 +79,10 @@ class LayerConfig:
     the layer models' held-out mean PSNR by a few thousandths of a dB either way, while at 8-16 spp
     it is what lifts it (campaigns 19-23, docs/models/consistency.md). Set after training, with
     ``consistency``."""
+    consistency_box: str = "mean"
+    """The neighbourhood variance the clamp shrinks a pixel's own toward: the ``"mean"`` or the
+    ``"median"`` over its 5x5 box (:func:`mcdenoise.models.consistency.bounds`). Set after
+    training, with ``consistency`` (campaign 23)."""
 
 
 def _paper_layer(**kw: object) -> LayerConfig:

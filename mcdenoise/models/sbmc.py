@@ -111,6 +111,10 @@ class SBMCConfig:
     the layer models' held-out mean PSNR by a few thousandths of a dB either way, while at 8-16 spp
     it is what lifts it (campaigns 19-23, docs/models/consistency.md). Set after training, with
     ``consistency``."""
+    consistency_box: str = "mean"
+    """The neighbourhood variance the clamp shrinks a pixel's own toward: the ``"mean"`` or the
+    ``"median"`` over its 5x5 box (:func:`mcdenoise.models.consistency.bounds`). Set after
+    training, with ``consistency`` (campaign 23)."""
 
 
 def _paper(**kw: object) -> SBMCConfig:
@@ -150,7 +154,7 @@ class SBMC(Denoiser):
         if cfg.steps < 1 or cfg.fc_layers < 1:
             raise ValueError("steps and fc_layers must be >= 1")
         check_key("SBMC", cfg.autoexposure)
-        check_consistency("SBMC", cfg.consistency, cfg.consistency_min_spp)
+        check_consistency("SBMC", cfg.consistency, cfg.consistency_min_spp, cfg.consistency_box)
         self.sample_features = sum(num_components(c) for c in cfg.channels)
         n_in = (2 * self.sample_features if not cfg.per_sample else self.sample_features) + len(SCENE_FEATURES)
         d = cfg.embed_width
@@ -324,7 +328,8 @@ class SBMC(Denoiser):
         inner = fill_emitters(batch, emitters)
         out = self._denoise(inner if s is None else scale_batch(inner, s))  # type: ignore[arg-type]
         out = pass_through(unscale(out, s), batch["radiance"], emitters)
-        return consistency_clamp(out, batch["radiance"], self.config.consistency, self.config.consistency_min_spp)
+        return consistency_clamp(out, batch["radiance"], self.config.consistency, self.config.consistency_min_spp,
+                                 self.config.consistency_box)
 
     def _denoise(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
         cfg = self.config

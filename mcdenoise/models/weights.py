@@ -185,7 +185,7 @@ def _from_run(run: Path) -> tuple[Denoiser, dict[str, Any]]:
 
 #: Configuration fields set on weights after training (``scripts/reconfigure_weights.py``), which a
 #: preset therefore does not fix.
-POST_TRAINING_FIELDS = ("autoexposure", "consistency", "consistency_min_spp")
+POST_TRAINING_FIELDS = ("autoexposure", "consistency", "consistency_min_spp", "consistency_box")
 
 
 def preset_differences(name: str, preset: str, config: dict[str, Any] | None) -> list[str]:

@@ -201,6 +201,10 @@ class WSKPConfig:
     the layer models' held-out mean PSNR by a few thousandths of a dB either way, while at 8-16 spp
     it is what lifts it (campaigns 19-23, docs/models/consistency.md). Set after training, with
     ``consistency``."""
+    consistency_box: str = "mean"
+    """The neighbourhood variance the clamp shrinks a pixel's own toward: the ``"mean"`` or the
+    ``"median"`` over its 5x5 box (:func:`mcdenoise.models.consistency.bounds`). Set after
+    training, with ``consistency`` (campaign 23)."""
 
 
 class WSKP(Denoiser):
@@ -213,7 +217,7 @@ class WSKP(Denoiser):
         if config.blocks < 1 or not config.kernel_sizes:
             raise ValueError(f"WSKP: need blocks >= 1 and at least one kernel size, got {config}")
         check_key("WSKP", config.autoexposure)
-        check_consistency("WSKP", config.consistency, config.consistency_min_spp)
+        check_consistency("WSKP", config.consistency, config.consistency_min_spp, config.consistency_box)
         n = len(config.kernel_sizes)
         chans = [INPUT_CHANNELS] + [config.channels] * (config.blocks - 1) + [2 * n]
         # The last block outputs logits (importance and fusion), so no ReLU there.
