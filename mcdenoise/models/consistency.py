@@ -27,11 +27,32 @@ so ``denoise`` and ``eval`` clamp its output from the input's per-pixel statisti
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 import torch
 import torch.nn.functional as F
 
-__all__ = ["PRIOR", "WINDOW", "MEDIAN_BAND", "bounds", "sample_bounds", "consistency_clamp", "pixel_consistency_clamp", "check_consistency"]
+__all__ = ["ConsistencyOptions", "PRIOR", "WINDOW", "MEDIAN_BAND", "bounds", "sample_bounds", "consistency_clamp", "pixel_consistency_clamp", "check_consistency"]
+
+@dataclass
+class ConsistencyOptions:
+    """How the clamp is applied, beside ``consistency`` (k) itself: a base of the SBMC, layer, WSKP
+    and KPCN configurations. Set after training, with ``consistency``
+    (``scripts/reconfigure_weights.py --set``), chosen on held-out images."""
+
+    consistency_min_spp: int = 2
+    """The fewest samples per pixel at which ``consistency`` acts (2: whenever there is a variance).
+    Why a higher count: at 4 spp a pixel's variance has 3 degrees of freedom and the clamp moved
+    the layer models' held-out mean PSNR by a few thousandths of a dB either way, while at 8-16 spp
+    it is what lifts it (campaigns 19-23, docs/models/consistency.md). Set after training, with
+    ``consistency``."""
+
+    consistency_box: str = "mean"
+    """The neighbourhood variance the clamp shrinks a pixel's own toward: the ``"mean"`` or the
+    ``"median"`` over its 5x5 box (:func:`mcdenoise.models.consistency.bounds`). Set after
+    training, with ``consistency`` (campaign 23)."""
+
 
 #: Weight of the neighbourhood's variance, in samples (chosen on held-out images: 0 left pixels
 #: whose few samples agree stuck at their mean, and cost 2.4-5.4 dB of PSNR at 4-8 spp:

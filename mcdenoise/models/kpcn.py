@@ -40,7 +40,7 @@ from torch import nn
 from mcdenoise.data.channels import variance_name
 from mcdenoise.models.base import Denoiser, register_model
 from mcdenoise.models.emitters import as_reflectance, emitter_mask, fill_emitters, pass_through
-from mcdenoise.models.consistency import check_consistency
+from mcdenoise.models.consistency import ConsistencyOptions, check_consistency
 from mcdenoise.models.exposure import check_key, scale_batch, unscale
 from mcdenoise.models.kpcn_features import FEATURES_PER_BRANCH, kpcn_features, window_variance
 from mcdenoise.ops.gather import gather, gather_rows
@@ -50,7 +50,7 @@ __all__ = ["KPCNConfig", "KPCN", "apply_kernels", "kpcn_features", "window_varia
 
 
 @dataclass
-class KPCNConfig:
+class KPCNConfig(ConsistencyOptions):
     """Configuration of one KPCN/DPCN network (both branches share it)."""
 
     layers: int = 9
@@ -90,16 +90,6 @@ class KPCNConfig:
     where the input has per-pixel variances (:func:`mcdenoise.models.consistency.pixel_consistency_clamp`,
     applied by ``denoise`` and ``eval`` after the model; not in the paper). Set after training, on
     held-out images; None: no clamp."""
-    consistency_min_spp: int = 2
-    """The fewest samples per pixel at which ``consistency`` acts (2: whenever there is a variance).
-    Why a higher count: at 4 spp a pixel's variance has 3 degrees of freedom and the clamp moved
-    the layer models' held-out mean PSNR by a few thousandths of a dB either way, while at 8-16 spp
-    it is what lifts it (campaigns 19-23, docs/models/consistency.md). Set after training, with
-    ``consistency``."""
-    consistency_box: str = "mean"
-    """The neighbourhood variance the clamp shrinks a pixel's own toward: the ``"mean"`` or the
-    ``"median"`` over its 5x5 box (:func:`mcdenoise.models.consistency.bounds`). Set after
-    training, with ``consistency`` (campaign 23)."""
 
     def feature_channels(self) -> tuple[str, str, str]:
         """Names of the (albedo, normal, depth) buffers the features read."""

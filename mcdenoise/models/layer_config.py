@@ -6,6 +6,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from mcdenoise.models.consistency import ConsistencyOptions
+
 __all__ = ["LayerConfig", "LAYER_CHANNELS"]
 
 #: Per-sample channels (Sec. 3 "Per-sample Processing": normal, depth, albedo, specular, roughness,
@@ -25,7 +27,7 @@ LAYER_CHANNELS: tuple[str, ...] = (
 
 
 @dataclass
-class LayerConfig:
+class LayerConfig(ConsistencyOptions):
     """Configuration of :class:`LayerDenoiser` (``layer``, ``layer_weighted``, ``layer_optimized``)."""
 
     channels: tuple[str, ...] = LAYER_CHANNELS
@@ -73,16 +75,6 @@ class LayerConfig:
     """Clamp each output pixel to this many (shrunk) standard errors around the mean of its own
     samples (:mod:`mcdenoise.models.consistency`; not in the paper). Set after training, on held-out
     images; None: no clamp."""
-    consistency_min_spp: int = 2
-    """The fewest samples per pixel at which ``consistency`` acts (2: whenever there is a variance).
-    Why a higher count: at 4 spp a pixel's variance has 3 degrees of freedom and the clamp moved
-    the layer models' held-out mean PSNR by a few thousandths of a dB either way, while at 8-16 spp
-    it is what lifts it (campaigns 19-23, docs/models/consistency.md). Set after training, with
-    ``consistency``."""
-    consistency_box: str = "mean"
-    """The neighbourhood variance the clamp shrinks a pixel's own toward: the ``"mean"`` or the
-    ``"median"`` over its 5x5 box (:func:`mcdenoise.models.consistency.bounds`). Set after
-    training, with ``consistency`` (campaign 23)."""
 
 
 def _paper_layer(**kw: object) -> LayerConfig:

@@ -30,7 +30,7 @@ from mcdenoise.data.channels import SCENE_FEATURES, num_components
 from mcdenoise.models.blocks import FCStack, UNet, signed_log1p
 from mcdenoise.models.base import Denoiser, register_model
 from mcdenoise.models.emitters import ALBEDO_CHANNELS, as_reflectance, batch_emitter_mask, fill_emitters, pass_through
-from mcdenoise.models.consistency import check_consistency, consistency_clamp
+from mcdenoise.models.consistency import ConsistencyOptions, check_consistency, consistency_clamp
 from mcdenoise.models.exposure import check_key, scale_batch, unscale
 from mcdenoise.ops.gather import gather, gather_rows
 from mcdenoise.ops.kernels import destination_max, per_destination_exp, per_pixel_exp
@@ -59,7 +59,7 @@ _LOG_CHANNELS = frozenset({"radiance", "diffuse", "specular", "depth_diffuse", "
 
 
 @dataclass
-class SBMCConfig:
+class SBMCConfig(ConsistencyOptions):
     """Configuration of :class:`SBMC` and its ablations."""
 
     per_sample: bool = True
@@ -105,16 +105,6 @@ class SBMCConfig:
     """Clamp each output pixel to this many (shrunk) standard errors around the mean of its own
     samples (:mod:`mcdenoise.models.consistency`; not in the paper). Set after training, on held-out
     images; None: no clamp."""
-    consistency_min_spp: int = 2
-    """The fewest samples per pixel at which ``consistency`` acts (2: whenever there is a variance).
-    Why a higher count: at 4 spp a pixel's variance has 3 degrees of freedom and the clamp moved
-    the layer models' held-out mean PSNR by a few thousandths of a dB either way, while at 8-16 spp
-    it is what lifts it (campaigns 19-23, docs/models/consistency.md). Set after training, with
-    ``consistency``."""
-    consistency_box: str = "mean"
-    """The neighbourhood variance the clamp shrinks a pixel's own toward: the ``"mean"`` or the
-    ``"median"`` over its 5x5 box (:func:`mcdenoise.models.consistency.bounds`). Set after
-    training, with ``consistency`` (campaign 23)."""
 
 
 def _paper(**kw: object) -> SBMCConfig:
