@@ -53,7 +53,7 @@ def main() -> None:
             bad = [f"{k[0]}" + (f" (seed {k[1]})" if k[1] is not None else "") for k, v in sorted(sc.items(), key=str)
                    if "noisy" in v and (v[m][0] > v["noisy"][0] or v[m][1] < v["noisy"][1])]
             print(f"        {m} worse than noisy on: {', '.join(bad) or 'none'}")
-        seeds = sorted({k[1] for k in sc}, key=str)
+        seeds = sorted({k[1] for k in sc}, key=lambda x: (x is None, x or 0))
         if len(seeds) > 1:
             per = {s: {m: np.mean([v[m] for k, v in sc.items() if k[1] == s], axis=0) for m in (old, new)} for s in seeds}
             for s in seeds:
