@@ -83,7 +83,7 @@ def test_eval_cli_renders_each_seed_and_reports_their_spread(scenes: Path, tmp_p
     so no spread), the seed missing from the report's images, or the spread left off the summary."""
     out = tmp_path / "report"
     rc = main(["eval", "--scenes", str(scenes), "--spp", "2", "--out", str(out), "--work", str(tmp_path / "w"),
-               "--render-seed", "3", "4", "--no-oidn", "--no-classic", "--no-html", "--no-progress"])
+               "--render-seed", "3", "4", "--no-oidn", "--no-classic", "--no-progress"])
     assert rc == 0
     doc = json.loads((out / "results.json").read_text())
     assert sorted(im["seed"] for im in doc["images"]) == [3, 4]
@@ -94,6 +94,7 @@ def test_eval_cli_renders_each_seed_and_reports_their_spread(scenes: Path, tmp_p
     assert spread["relmse"] == [relmse[by_seed[3]], relmse[by_seed[4]]]
     assert spread["relmse"][0] != spread["relmse"][1]  # two renderings, not one twice
     assert "Spread over the 2 render seeds (3, 4)" in capsys.readouterr().out
+    assert "Spread over the 2 render seeds (3, 4)" in (out / "index.html").read_text()
     rc = main(["eval", "--scenes", str(scenes), "--spp", "2", "--out", str(out), "--work", str(tmp_path / "w"),
                "--render-seed", "3", "3", "--no-oidn", "--no-classic", "--no-progress"])
     assert rc != 0 and "--render-seed: a seed given twice (3 3)" in capsys.readouterr().err
