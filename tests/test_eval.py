@@ -428,3 +428,19 @@ def test_large_evaluations_still_say_where_a_model_is_worse_than_noisy(report: t
     assert len(lines) == len(doc["config"]["spp"])
     assert f"at {k} spp" in lines[0] and f"{model} on {Path(row['image']).name}." in lines[0]
     assert all(ln.endswith("none.") for ln in lines[1:])
+
+
+def test_many_data_folders_are_counted_not_listed(report: tuple[Path, dict, Path]) -> None:
+    """Bug caught (campaign 23): a six-seed evaluation of nine scenes listed 54 folder paths in its
+    RESULTS.md block. Beyond the per-image limit they are counted per parent folder; below it every
+    folder is still named."""
+    import copy
+
+    from mcdenoise.eval import resultsmd
+
+    _, doc, _ = report
+    assert all(f"`{d}`" in resultsmd.render_block(doc) for d in doc["config"]["data"])
+    big = copy.deepcopy(doc)
+    big["config"]["data"] = [f"work/scene{i}_seed{s}" for i in range(9) for s in range(2)]
+    md = resultsmd.render_block(big)
+    assert "18 folders in `work`" in md and "work/scene0_seed0" not in md

@@ -164,6 +164,17 @@ def _worse_than_noisy(doc: dict[str, Any]) -> list[str]:
     return out
 
 
+def _data_list(data: list[str]) -> str:
+    """The data folders, each quoted; more than PER_IMAGE_MAX of them (one per scene and render
+    seed) as a count per parent folder, since 54 paths would bury the table under them."""
+    if len(data) <= PER_IMAGE_MAX:
+        return ", ".join(f"`{d}`" for d in data)
+    parents: dict[str, int] = {}
+    for d in data:
+        parents[str(Path(d).parent)] = parents.get(str(Path(d).parent), 0) + 1
+    return ", ".join(f"{n} folders in `{parent}`" for parent, n in parents.items())
+
+
 def render_block(doc: dict[str, Any]) -> str:
     """The Markdown of one evaluation: provenance, mean tables, model ratios, floors, DoF subset."""
     p = doc["provenance"]
@@ -174,7 +185,7 @@ def render_block(doc: dict[str, Any]) -> str:
         "",
         f"Date {p['date']}; machine: {p['machine']}; device {p['device']}; mcdenoise {p['mcdenoise']}, "
         f"torch {p['torch']}" + (f", OIDN {p['oidn']}" if "oidn" in p else "") + ".",
-        f"{len(doc['images'])} images (split `{cfg['split']}` of {', '.join(f'`{d}`' for d in cfg['data'])}), "
+        f"{len(doc['images'])} images (split `{cfg['split']}` of {_data_list(cfg['data'])}), "
         f"inputs: the first k stored samples, k = {', '.join(map(str, cfg['spp']))}. "
         "Means over images; ms/MP = wall time of the denoise call per megapixel" + _threads(doc) + ".",
         "",
