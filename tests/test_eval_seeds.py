@@ -70,3 +70,20 @@ def test_markdown_table_has_a_row_per_method_and_spp() -> None:
     table = [l for l in md if l.startswith("| 4 |")]
     assert len(table) == 2 and "| 1.00-2.00 | 1.20 |" in table[0] and table[1].endswith("- | - |")
     assert spread_markdown([]) == []
+
+
+def test_results_block_has_a_per_scene_table_over_seeds() -> None:
+    """Catches a many-seed RESULTS.md block without per-scene figures (the per-image tables stop at
+    12 images) or with a per-scene value that is not the mean of that scene's renderings."""
+    from mcdenoise.eval.resultsmd import _per_scene
+
+    rows, images = _doc({("noisy", 4, "x", 7): (2.0, 20.0), ("noisy", 4, "x", 8): (4.0, 22.0),
+                         ("noisy", 4, "y", 7): (1.0, 20.0), ("noisy", 4, "y", 8): (1.5, 22.0),
+                         ("m", 4, "x", 7): (0.5, 30.0), ("m", 4, "x", 8): (1.5, 30.0),
+                         ("m", 4, "y", 7): (0.2, 30.0), ("m", 4, "y", 8): (0.4, 30.0)})
+    doc = {"rows": rows, "images": images, "methods": [{"name": "noisy"}, {"name": "m"}], "config": {"spp": [4]},
+           "seed_spread": seed_spread(rows, images)}
+    md = _per_scene(doc)
+    assert "relMSE per scene at 4 spp, mean over the 2 render seeds (lowest in bold):" in md
+    assert "| x | 3 | **1** |" in md and "| y | 1.25 | **0.3** |" in md
+    assert _per_scene({**doc, "seed_spread": []}) == []

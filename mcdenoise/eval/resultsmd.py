@@ -13,6 +13,8 @@ import os
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from mcdenoise.eval.docblock import replace_block
 from mcdenoise.eval.seeds import spread_markdown
 
@@ -108,33 +110,56 @@ def _short(image: str) -> str:
     return name.split("_")[0] if "_" in name else name
 
 
-def _per_image(doc: dict[str, Any]) -> list[str]:
-    """relMSE per image and spp (best in bold), and where each model is worse than the noisy input."""
+def _relmse_tables(doc: dict[str, Any], rel: dict[tuple[int, str], dict[str, float]], title: str,
+                   worse_list: bool, label: Any = str, head: str = "image") -> list[str]:
+    """A relMSE table per spp over ``rel`` ((spp, row key) -> method -> value; best in bold), rows
+    named and sorted by ``label(key)``, with ``title`` formatted by spp, and optionally the rows
+    where a model is worse than the noisy input."""
     methods = [m["name"] for m in doc["methods"]]
-    rel: dict[tuple[int, str], dict[str, float]] = {}
-    for r in doc["rows"]:
-        if isinstance(r.get("relmse"), (int, float)):
-            rel.setdefault((int(r["spp"]), str(r["image"])), {})[r["method"]] = float(r["relmse"])
     out: list[str] = []
     for spp in doc["config"]["spp"]:
-        images = sorted({img for (k, img) in rel if k == spp}, key=_short)
-        if not images:
+        keys = sorted({key for (k, key) in rel if k == spp}, key=label)
+        if not keys:
             continue
-        out += ["", f"relMSE per image at {spp} spp (lowest in bold):", "",
-                "| image | " + " | ".join(methods) + " |", "|---|" + "---|" * len(methods)]
+        out += ["", title.format(spp=spp), "", f"| {head} | " + " | ".join(methods) + " |", "|---|" + "---|" * len(methods)]
         worse: dict[str, list[str]] = {}
-        for img in images:
-            row = rel[(spp, img)]
+        for key in keys:
+            row, lab = rel[(spp, key)], label(key)
             best = min(row.values())
             cells = [(f"**{row[m]:.4g}**" if row[m] == best else f"{row[m]:.4g}") if m in row else "-" for m in methods]
-            out.append(f"| {_short(img)} | " + " | ".join(cells) + " |")
+            out.append(f"| {lab} | " + " | ".join(cells) + " |")
             for m, v in row.items():
-                if m != "noisy" and "noisy" in row and v > row["noisy"]:
-                    worse.setdefault(m, []).append(_short(img))
+                if worse_list and m != "noisy" and "noisy" in row and v > row["noisy"]:
+                    worse.setdefault(m, []).append(lab)
         if worse:
             out += ["", "Worse than the noisy input (relMSE): " +
                     "; ".join(f"{m} on {', '.join(v)}" for m, v in sorted(worse.items())) + "."]
     return out
+
+
+def _per_image(doc: dict[str, Any]) -> list[str]:
+    """relMSE per image and spp (best in bold), and where each model is worse than the noisy input."""
+    rel: dict[tuple[int, str], dict[str, float]] = {}
+    for r in doc["rows"]:
+        if isinstance(r.get("relmse"), (int, float)):
+            rel.setdefault((int(r["spp"]), str(r["image"])), {})[r["method"]] = float(r["relmse"])
+    return _relmse_tables(doc, rel, "relMSE per image at {spp} spp (lowest in bold):", True, _short)
+
+
+def _per_scene(doc: dict[str, Any]) -> list[str]:
+    """With several render seeds: relMSE per scene and spp, the mean over the seeds' renderings
+    (each seed's images are the same scenes: :func:`mcdenoise.eval.seeds.seed_spread`)."""
+    if not doc.get("seed_spread"):
+        return []
+    scene = {im["id"]: im["scene"] for im in doc["images"]}
+    vals: dict[tuple[int, str], dict[str, list[float]]] = {}
+    for r in doc["rows"]:
+        if isinstance(r.get("relmse"), (int, float)):
+            vals.setdefault((int(r["spp"]), scene[r["image"]]), {}).setdefault(r["method"], []).append(float(r["relmse"]))
+    rel = {k: {m: float(np.mean(v)) for m, v in row.items()} for k, row in vals.items()}
+    n = len(doc["seed_spread"][0]["seeds"])
+    return _relmse_tables(doc, rel, "relMSE per scene at {spp} spp, mean over the " + str(n) +
+                          " render seeds (lowest in bold):", False, head="scene")
 
 
 def _worse_than_noisy(doc: dict[str, Any]) -> list[str]:
@@ -208,6 +233,8 @@ def render_block(doc: dict[str, Any]) -> str:
             lines += ["", *sub_models]
     if len(doc["images"]) <= PER_IMAGE_MAX:
         lines += _per_image(doc)
+    else:
+        lines += _per_scene(doc)
     if doc["notes"]:
         lines += ["", "Notes: " + "; ".join(doc["notes"])]
     return "\n".join(lines)
