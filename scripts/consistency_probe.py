@@ -11,7 +11,8 @@ without the clamp.
 
 A ``k`` written ``K@N`` (``4@8``) clamps only from ``N`` samples per pixel (the configuration's
 ``consistency_min_spp``): below it the output is the unclamped one. ``Km`` (``4m``, ``4m@8``) takes
-the median of the 5x5 box's variances instead of their mean (``consistency_box``).
+the median of the 5x5 box's variances instead of their mean (``consistency_box``). The last lines
+apply the rule to each model: the eligible settings with their sums, and the choice.
 """
 from __future__ import annotations
 
@@ -40,6 +41,17 @@ def k_label(k: float, first: int, box: str) -> str:
     return f"k {k:g}" + ("m" if box == "median" else "") + (f"@{first}" if first != 2 else "")
 
 
+def rule_choice(figures: dict[str, dict[int, tuple[float, float]]]) -> tuple[list[str], str]:
+    """The rule of docs/models/consistency.md on one model's ``figures`` (setting -> spp -> (geo-mean
+    relMSE, mean PSNR), with ``"none"``): the eligible settings (mean PSNR nowhere below "none"'s),
+    lowest sum of geo-mean relMSE over spp first, and the choice ("none" when none is eligible)."""
+    base = figures["none"]
+    ok = [key for key, f in figures.items()
+          if key != "none" and set(f) == set(base) and all(f[s][1] >= base[s][1] for s in base)]
+    ok.sort(key=lambda key: sum(v[0] for v in figures[key].values()))
+    return ok, ok[0] if ok else "none"
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("roots", nargs="+")
@@ -58,6 +70,7 @@ def main() -> None:
     for spec in a.models:
         m, info = load_denoiser(spec)
         methods.append(ModelMethod(info.get("label", spec), m, info, "cpu"))
+    figures: dict[str, dict[str, dict[int, tuple[float, float]]]] = {}
     for spp in a.spp:
         res: dict = {}
         for im in images:
@@ -83,9 +96,15 @@ def main() -> None:
             for key, v in r.items():
                 v = np.array(v)
                 wr, wp = int((v[:, 0] >= v[:, 2]).sum()), int((v[:, 1] <= v[:, 3]).sum())
+                figures.setdefault(name, {}).setdefault(key, {})[spp] = (float(np.exp(np.log(v[:, 0]).mean())),
+                                                                           float(v[:, 1].mean()))
                 print(f"spp {spp:2d} {name:12s} {key:8s}: relMSE geo {np.exp(np.log(v[:, 0]).mean()):.5f} median "
                       f"{np.median(v[:, 0]):.5f}  PSNR {v[:, 1].mean():.4f}  worse than noisy: relMSE {wr}, PSNR {wp} of {len(v)}",
                       flush=True)
+    for name, f in figures.items():
+        ok, choice = rule_choice(f)
+        sums = ", ".join(f"{key} ({sum(v[0] for v in f[key].values()):.5f})" for key in ok)
+        print(f"rule {name}: eligible {sums or 'none'}; choice {choice}")
 
 
 if __name__ == "__main__":

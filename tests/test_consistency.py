@@ -321,3 +321,23 @@ def test_eval_clamps_a_pixel_model_with_the_k_samples_statistics(tmp_path) -> No
     mean, var_mean = pixel_stats(samples["radiance"][:4])
     np.testing.assert_allclose(got, pixel_consistency_clamp(raw, mean, var_mean, 4, 1.0), rtol=1e-6, atol=1e-7)
     assert not np.allclose(got, raw)
+
+
+def test_probe_rule_picks_the_lowest_sum_among_settings_nowhere_below_the_unclamped_psnr() -> None:
+    """scripts/consistency_probe.py's rule: catches a setting admitted though its PSNR is below the
+    unclamped at one spp, a choice by the wrong spp's figure instead of the sum, or a choice made
+    when nothing is eligible."""
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parent.parent / "scripts" / "consistency_probe.py"
+    spec = importlib.util.spec_from_file_location("_consistency_probe", path)
+    probe = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(probe)
+    figures = {"none": {4: (0.10, 26.0), 8: (0.08, 27.0)},
+               "k 3": {4: (0.05, 25.9), 8: (0.05, 27.1)},  # lowest sum, but below at 4 spp
+               "k 4": {4: (0.10, 26.0), 8: (0.07, 27.1)},
+               "k 3@8": {4: (0.10, 26.0), 8: (0.06, 27.0)}}
+    assert probe.rule_choice(figures) == (["k 3@8", "k 4"], "k 3@8")
+    assert probe.rule_choice({"none": figures["none"], "k 3": figures["k 3"]}) == ([], "none")
+    assert probe.parse_k("4m@8") == (4.0, 8, "median") and probe.parse_k("2.5") == (2.5, 2, "mean")

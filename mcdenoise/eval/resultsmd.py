@@ -10,6 +10,7 @@ OIDN), and whether the floor of issue 10 holds: at least 10x over noisy at 8 spp
 from __future__ import annotations
 
 import os
+from collections import Counter
 from pathlib import Path
 from typing import Any
 
@@ -194,9 +195,7 @@ def _data_list(data: list[str]) -> str:
     seed) as a count per parent folder, since 54 paths would bury the table under them."""
     if len(data) <= PER_IMAGE_MAX:
         return ", ".join(f"`{d}`" for d in data)
-    parents: dict[str, int] = {}
-    for d in data:
-        parents[str(Path(d).parent)] = parents.get(str(Path(d).parent), 0) + 1
+    parents = Counter(str(Path(d).parent) for d in data)
     return ", ".join(f"{n} folders in `{parent}`" for parent, n in parents.items())
 
 

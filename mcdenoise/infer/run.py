@@ -17,6 +17,7 @@ from mcdenoise.infer.memory import DEFAULT_MAX_MEMORY, MemoryCost, measure_cost
 from mcdenoise.infer.receptive import alignment, receptive_field
 from mcdenoise.infer.sources import Inputs
 from mcdenoise.infer.tiling import TilePlan, plan_tiles, run_tiled
+from mcdenoise.models.consistency import acts_at
 from mcdenoise.models.exposure import EXPOSURE_SCALE
 from mcdenoise.models.registry import Denoiser
 from mcdenoise.models.symmetry import ALL_OPS, median_of, transform_batch, untransform
@@ -178,10 +179,10 @@ def denoise_inputs(inputs: Inputs, model: Denoiser, *, device: torch.device | st
     out = median_of(outs)
     del outs
     k = getattr(model.config, "consistency", None)
-    first = max(2, getattr(model.config, "consistency_min_spp", 2))
+    first = getattr(model.config, "consistency_min_spp", 2)
     note = "" if k is None else f"each pixel within {k:g} standard errors of its own samples' mean"
-    if kind == "samples" and k is not None and spp < first:
-        note = f"not applied (consistency {k:g} acts from {first} spp): the input has {spp}"
+    if kind == "samples" and k is not None and not acts_at(spp, first):
+        note = f"not applied (consistency {k:g} acts from {max(2, first)} spp): the input has {spp}"
     if kind == "pixels" and k is not None:
         # On the whole image, after tiling (its 5x5 box would otherwise need the tiles' overlap).
         # The variance of the mean in noisy.exr is over every stored sample: the image folder's spp.
@@ -189,8 +190,8 @@ def denoise_inputs(inputs: Inputs, model: Denoiser, *, device: torch.device | st
         var = inputs.pixels.get("radiance_variance")
         if var is None or n < 2:
             note = f"not applied (consistency {k:g}): the input has no per-pixel variance of its samples"
-        elif n < first:
-            note = f"not applied (consistency {k:g} acts from {first} spp): the input has {n}"
+        elif not acts_at(n, first):
+            note = f"not applied (consistency {k:g} acts from {max(2, first)} spp): the input has {n}"
         out = model.pixel_consistency(out, inputs.pixels.get("radiance"), var, n)
     inputs.warn_nonfinite()
     return out, RunInfo(plan, device, names, spp, note, len(ops))

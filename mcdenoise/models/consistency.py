@@ -33,7 +33,9 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-__all__ = ["ConsistencyOptions", "PRIOR", "WINDOW", "MEDIAN_BAND", "bounds", "sample_bounds", "consistency_clamp", "pixel_consistency_clamp", "check_consistency"]
+__all__ = ["ConsistencyOptions", "PRIOR", "WINDOW", "MEDIAN_BAND", "acts_at", "bounds", "sample_bounds",
+           "consistency_clamp", "pixel_consistency_clamp", "check_consistency"]
+
 
 @dataclass
 class ConsistencyOptions:
@@ -80,6 +82,12 @@ def _box_median(x: torch.Tensor) -> torch.Tensor:
     return torch.cat(out, dim=2)
 
 
+def acts_at(n: int, min_spp: int = 2) -> bool:
+    """Whether the clamp acts on ``n`` samples per pixel: it needs a variance (2 or more) and at
+    least ``consistency_min_spp``."""
+    return n >= max(2, min_spp)
+
+
 def bounds(mean: torch.Tensor, var_mean: torch.Tensor, n: int, k: float,
            box: str = "mean") -> tuple[torch.Tensor, torch.Tensor]:
     """``(lo, hi)``, each ``(B, C, H, W)``, from per-pixel means and variances of the mean
@@ -117,7 +125,7 @@ def consistency_clamp(out: torch.Tensor, samples: torch.Tensor, k: float | None,
     """``out`` (B, 3, H, W) clamped to ``k`` shrunk standard errors around the mean of ``samples``
     (B, S, 3, H, W); unchanged for ``k`` None or fewer than ``max(2, min_spp)`` samples
     (``box``: :func:`bounds`)."""
-    if k is None or samples.shape[1] < max(2, min_spp):
+    if k is None or not acts_at(samples.shape[1], min_spp):
         return out
     lo, hi = sample_bounds(samples.to(out.dtype), k, box)
     return torch.minimum(torch.maximum(out, lo), hi)
@@ -131,7 +139,7 @@ def pixel_consistency_clamp(out: np.ndarray, mean: np.ndarray, var_mean: np.ndar
     A pixel model sees no samples, so inference applies this after the model where the input has
     the statistics (an image folder of ``mcdenoise render``, or its first k samples in ``eval``).
     Unchanged for ``k`` None, no variance (a Blender file, a plain colour EXR) or ``n < max(2, min_spp)``."""
-    if k is None or var_mean is None or n < max(2, min_spp):
+    if k is None or var_mean is None or not acts_at(n, min_spp):
         return out
     def t(a: np.ndarray) -> torch.Tensor:
         return torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32))[None]
