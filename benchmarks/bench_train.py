@@ -44,9 +44,10 @@ from mcdenoise.train.trainer import Trainer, data_config  # noqa: E402
 
 def bench_model(name: str, data: Path, args: argparse.Namespace, workers: int) -> dict[str, Any]:
     torch.manual_seed(0)
-    model = build_model(name, "small")
+    model = build_model(name, args.preset)
     cfg = TrainConfig(model=name, data=str(data), steps=100_000, batch=args.batch, crop=args.crop, workers=workers,
-                      sampling=args.sampling).resolved(model.input_kind)
+                      sampling=args.sampling, amp=args.amp,
+                      spp_range=tuple(args.spp) if args.spp else None).resolved(model.input_kind)
     dcfg = data_config(cfg)
     tr = Trainer(model, cfg, torch.device(args.device))
     # The same batches the data figure reads (sample models draw their spp per batch, and cost
@@ -80,6 +81,10 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", type=Path, help="dataset folder from `mcdenoise dataset` (required unless --quick)")
     ap.add_argument("--models", nargs="*", help="default: every registered model")
+    ap.add_argument("--preset", default="small", help="preset of every model (default small)")
+    ap.add_argument("--amp", default="none", choices=("none", "bf16"), help="as `mcdenoise train --amp`")
+    ap.add_argument("--spp", type=int, nargs=2, default=None, metavar=("MIN", "MAX"),
+                    help="sample models' spp range (default: train's)")
     ap.add_argument("--batch", type=int, default=8)
     ap.add_argument("--crop", type=int, default=48)
     ap.add_argument("--workers", type=int, nargs="*", default=[2])
@@ -110,7 +115,7 @@ def main() -> int:
             r = bench_model(name, args.data, args, w)
             rows.append(r)
             print(f"  {name}: {r['train_s_per_step']:.3f} s/step", file=sys.stderr, flush=True)
-    head = (f"batch {args.batch}, crop {args.crop}, {args.sampling} crops, device {args.device}, "
+    head = (f"preset {args.preset}, amp {args.amp}, batch {args.batch}, crop {args.crop}, {args.sampling} crops, device {args.device}, "
             f"{torch.get_num_threads()} torch threads, {os.cpu_count()} cores ({platform.processor() or platform.machine()})")
     print(f"\n{head}\n")
     print("| model | params | input spp | workers | compute s/step | data crops/s | train s/step | train crops/s |")

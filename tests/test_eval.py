@@ -199,6 +199,42 @@ def test_cli_writes_report_and_replaces_it(data: Path, models: list[Path], tmp_p
     assert "2 images" in capsys.readouterr().err
 
 
+def test_cli_save_images_feed_blend_outputs(data: Path, models: list[Path], tmp_path: Path,
+                                            capsys: pytest.CaptureFixture[str]) -> None:
+    """Catches --save-images not reaching evaluate (no EXRs), saved outputs that differ from the scored
+    ones, and scripts/blend_outputs.py mixing up members, weights or its median."""
+    import importlib.util
+
+    from mcdenoise.eval.scores import image_metrics
+    from mcdenoise.io.exr import read_exr
+
+    out = tmp_path / "rep"
+    assert main(["eval", "--models", *map(str, models), "--data", str(data), "--spp", "4", "--out", str(out), "--no-oidn",
+                 "--no-classic", "--no-html", "--no-progress", "--threads", "1", "--max-images", "1",
+                 "--save-images"]) == 0
+    doc = json.loads((out / "results.json").read_text())
+    assert "--save-images" in doc["command"]
+    row = next(r for r in doc["rows"] if r["method"] == "wskp_rand")
+    folder = out / "images" / row["image"]
+    ref = read_exr(folder / "reference.exr")["radiance"]
+    outs = {m: read_exr(folder / "4spp" / f"{m}.exr")["radiance"] for m in ("noisy", "wskp_rand", "layer_rand")}
+    assert image_metrics(outs["wskp_rand"], ref, ["relmse"])["relmse"] == pytest.approx(row["relmse"], rel=1e-6)
+
+    path = Path(__file__).resolve().parent.parent / "scripts" / "blend_outputs.py"
+    spec = importlib.util.spec_from_file_location("_blend_outputs", path)
+    blend = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(blend)
+    a, b, n = outs["wskp_rand"], outs["layer_rand"], outs["noisy"]
+    np.testing.assert_allclose(blend.apply_blend(blend.parse_blend("x=wskp_rand+layer_rand"), outs), (a + b) / 2, rtol=1e-6)
+    np.testing.assert_allclose(blend.apply_blend(blend.parse_blend("x=0.25*wskp_rand+0.75*layer_rand"), outs),
+                               0.25 * a + 0.75 * b, rtol=1e-6)
+    med = blend.apply_blend(blend.parse_blend("x=median:wskp_rand+layer_rand+noisy"), outs)
+    np.testing.assert_allclose(med, np.maximum(np.minimum(a, b), np.minimum(np.maximum(a, b), n)), rtol=1e-6)
+    for bad in ("x=wskp_rand", "x=0.5*a+0.6*b", "noequals"):
+        with pytest.raises(ValueError):
+            blend.parse_blend(bad)
+
+
 def _one_line_error(argv: list[str], capsys: pytest.CaptureFixture[str], pattern: str) -> None:
     assert main(argv) == 1
     err = capsys.readouterr().err.strip()

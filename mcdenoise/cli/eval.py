@@ -4,7 +4,7 @@
                    [--spp 4 8 16] [--oidn high fast] [--no-oidn] [--no-classic] [--max-images N]
                    [--device auto|cpu|cuda] [--threads N]
                    [--results-md docs/RESULTS.md --section NAME]
-                   [--no-html] [--no-progress]
+                   [--no-html] [--save-images] [--no-progress]
 
 A model is a registered name (its shipped weights), a run folder of `mcdenoise train`, or a
 .safetensors file. DIR is a dataset folder (its --split images), an image folder from
@@ -63,6 +63,8 @@ def add_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--results-md", type=Path, help="also write the tables into this Markdown file...")
     p.add_argument("--section", help="...as its generated block eval:SECTION")
     p.add_argument("--no-html", action="store_true", help="only results.json and results.csv")
+    p.add_argument("--save-images", action="store_true",
+                   help="also write every full-size output as OUT/images/IMAGE/Kspp/METHOD.exr (and reference.exr)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -103,6 +105,7 @@ def run(args: argparse.Namespace) -> int:
         progress=not args.no_progress,
         command=command,
         self_ensemble=args.self_ensemble,
+        save_images=args.save_images,
     )
     from mcdenoise.eval.ranking import terminal_summary
 
@@ -145,6 +148,8 @@ def _command_from(args: argparse.Namespace) -> str:
         parts += ["--precision", *args.precision]
     if args.self_ensemble:
         parts.append("--self-ensemble")
+    if args.save_images:
+        parts.append("--save-images")
     if args.results_md is not None:
         parts += ["--results-md", str(args.results_md), "--section", str(args.section)]
     return "mcdenoise " + shlex.join(parts)

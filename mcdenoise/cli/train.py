@@ -60,7 +60,8 @@ def add_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--model-overrides", type=_json_object, metavar="JSON",
                    help='fields of the preset\'s model configuration to replace, e.g. \'{"layers": 4}\' (ablations)')
     p.add_argument("--branch-fraction", type=float, help="KPCN/DPCN: fraction of steps on per-branch losses (default 0.8)")
-    p.add_argument("--amp", choices=("none", "bf16"), help="bf16 autocast on CUDA (default none)")
+    p.add_argument("--amp", choices=("none", "bf16"),
+                   help="bf16 autocast of the forward pass, on CUDA or a CPU with AVX512-BF16/AMX (default none)")
     p.add_argument("--resume", action="store_true", help="continue the run in --out from its newest checkpoint")
     p.add_argument("--force", action="store_true", help="replace an existing run in --out")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")

@@ -281,7 +281,8 @@ class SBMC(Denoiser):
         if cfg.splat:
 
             def band_logits(y0: int, y1: int) -> torch.Tensor:
-                return self.kernel(e[..., y0:y1, :], ctx[..., y0:y1, :])
+                # .to: bfloat16 under autocast; the splat accumulates in the embeddings' float32.
+                return self.kernel(e[..., y0:y1, :], ctx[..., y0:y1, :]).to(e.dtype)
 
             # One band: its logits are generated once and serve both passes. Several: each pass
             # regenerates them band by band, and never two bands' logits exist at once.
@@ -303,7 +304,7 @@ class SBMC(Denoiser):
         img = torch.cat([radiance, torch.ones_like(radiance[:, :, :1])], dim=2).reshape(b * s, 4, h, w)
         out = e.new_zeros((b, 4, h, w))
         for y0, y1 in bands:
-            logits = self.kernel(e[..., y0:y1, :], ctx[..., y0:y1, :])
+            logits = self.kernel(e[..., y0:y1, :], ctx[..., y0:y1, :]).to(img.dtype)
             weights = per_pixel_exp(logits, row0=y0, height=h, inplace=True)
             got = gather_rows(img, weights.reshape(b * s, k * k, y1 - y0, w), y0)
             out[..., y0:y1, :] = got.reshape(b, s, 4, y1 - y0, w).sum(dim=1)

@@ -239,6 +239,7 @@ class WSKP(Denoiser):
         x, irradiance, albedo = wskp_input(inner if s is None else scale_batch(inner, s), self.config.demod_threshold)
         z = self.net(x)
         n = len(self.config.kernel_sizes)
+        z = z.to(irradiance.dtype)  # bfloat16 under training autocast: the filter runs in the image's precision
         filtered = fused_importance_filter(irradiance, z[:, :n], z[:, n:], sizes=tuple(self.config.kernel_sizes))
         return pass_through(unscale(filtered * albedo, s), batch["radiance"], emitters)
 

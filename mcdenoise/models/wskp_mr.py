@@ -122,7 +122,8 @@ class WSKPMR(Denoiser):
         emitters = emitter_mask(batch["albedo"])
         x, irr, albedo = wskp_input(fill_emitters(batch, emitters), self.config.demod_threshold)
         h, w = irr.shape[-2:]
-        levels = self._levels(x)
+        # bfloat16 under training autocast: the filters and blends run in the image's precision.
+        levels = [tuple(t.to(irr.dtype) if t is not None else None for t in lv) for lv in self._levels(x)]
         sizes = tuple(self.config.kernel_sizes)
         irrs = [self._pad(irr)]
         for _ in range(self.levels - 1):

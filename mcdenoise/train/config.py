@@ -133,7 +133,9 @@ class TrainConfig:
     branch_fraction: float | None = None
     """Fraction of steps on per-branch losses (KPCN/DPCN); None = the model's default; 0 under noisy targets."""
     amp: str = "none"
-    """``bf16``: autocast the forward pass to bfloat16 on CUDA (never on CPU); ``none``: float32."""
+    """``bf16``: autocast the forward pass to bfloat16 (CUDA, or a CPU with native bfloat16:
+    AVX512-BF16/AMX; emulated elsewhere, so slower); losses, weights and optimiser stay float32;
+    ``none``: float32."""
     device: str = "auto"
     """``cpu``, ``cuda`` or ``auto`` (CUDA when available)."""
     workers: int = 2

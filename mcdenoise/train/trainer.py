@@ -6,6 +6,7 @@ No files and no process group handling: :mod:`mcdenoise.train.loop` owns the run
 
 from __future__ import annotations
 
+import warnings
 from contextlib import nullcontext
 from typing import Any
 
@@ -64,6 +65,12 @@ class Trainer:
 
     def __init__(self, model: Denoiser, cfg: TrainConfig, device: torch.device, distributed: bool = False) -> None:
         self.model, self.cfg, self.device = model, cfg, device
+        if cfg.amp == "bf16" and device.type == "cpu":
+            from mcdenoise.models.inference import native_bfloat16
+
+            if not native_bfloat16("cpu"):
+                warnings.warn("--amp bf16: this CPU has no native bfloat16 (AVX512-BF16/AMX); emulated, it is "
+                              "slower than float32", stacklevel=2)
         self.loss = get_loss(cfg.loss or "l1")
         if distributed and device.type == "cuda":
             # BatchNorm (WSKP's RepVGG blocks) would otherwise normalise by per-rank statistics;
@@ -91,8 +98,8 @@ class Trainer:
     def compute_loss(self, batch: dict[str, torch.Tensor], step: int) -> torch.Tensor:
         """The scalar loss of ``batch`` for the phase of ``step`` (graph kept for backward)."""
         branches = self.phase(step) == "branches"
-        amp = self.cfg.amp == "bf16" and self.device.type == "cuda"
-        ctx = torch.autocast("cuda", dtype=torch.bfloat16) if amp else nullcontext()
+        amp = self.cfg.amp == "bf16" and self.device.type in ("cuda", "cpu")
+        ctx = torch.autocast(self.device.type, dtype=torch.bfloat16) if amp else nullcontext()
         with ctx:
             out = self.objective(batch, branches)
         if not branches:
