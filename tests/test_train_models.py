@@ -61,3 +61,21 @@ def test_every_model_trains_with_a_falling_loss(name: str, device: str, amp: str
     assert skipped == 0
     assert after < before, (name, before, after)
     assert all(p.dtype == torch.float32 for p in model.parameters())
+
+
+def test_bf16_on_a_cpu_without_native_bfloat16_warns(tiny: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Catches `--amp bf16` silently running emulated (several times slower than float32) on a CPU
+    without AVX512-BF16/AMX, and a warning on CPUs that have it."""
+    import warnings
+
+    from mcdenoise.models import inference
+
+    model = build_model("wskp", "small")
+    cfg = TrainConfig(model="wskp", data=str(tiny), steps=10, batch=2, crop=8, workers=0, amp="bf16").resolved(model.input_kind)
+    monkeypatch.setattr(inference, "native_bfloat16", lambda device="cpu": False)
+    with pytest.warns(UserWarning, match="no native bfloat16"):
+        Trainer(model, cfg, torch.device("cpu"))
+    monkeypatch.setattr(inference, "native_bfloat16", lambda device="cpu": True)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        Trainer(model, cfg, torch.device("cpu"))
