@@ -78,8 +78,7 @@ def main() -> None:
         sys.exit(f"blend_outputs: {root}: no saved images (run mcdenoise eval with --save-images)")
     doc = json.loads((a.report / "results.json").read_text())
     seeds = {im["id"]: im.get("seed") for im in doc.get("images", [])}
-    methods = list(doc["methods"]) if isinstance(doc["methods"], list) else list(doc["methods"])
-    methods = [m["name"] if isinstance(m, dict) else m for m in methods]
+    methods = [m["name"] for m in doc["methods"]]
     members = sorted({m for b in blends for _, m in b[2]})
     missing = [m for m in members + [a.baseline] if m not in methods]
     if missing:
@@ -97,12 +96,12 @@ def main() -> None:
             for b in blends:
                 outs[b[0]] = apply_blend(b, outs)
             for name, y in outs.items():
-                if name == "noisy" or name not in names:
+                if name not in names:
                     continue
                 s = image_metrics(y, ref, ["relmse", "psnr"])
                 scores[k][name].append((iid, float(s["relmse"]), float(s["psnr"])))
             if members:
-                best = min((v for n, v in ((n, scores[k][n][-1]) for n in members)), key=lambda t: t[1])
+                best = min((scores[k][n][-1] for n in members), key=lambda t: t[1])
                 scores[k]["oracle(members)"].append(best)
     for k in sorted(scores):
         base = np.mean([r for _, r, _ in scores[k][a.baseline]])
