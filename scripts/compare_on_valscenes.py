@@ -26,6 +26,21 @@ def _seed(image: str, seeds: dict[str, int | None]) -> int | None:
     return int(m.group(1)) if m else None
 
 
+def collect(files: list[str]) -> dict[tuple[str, int | None, int], dict[str, tuple[float, float]]]:
+    """(scene, render seed, spp) -> {method: (relMSE, PSNR)} over the reports' rows; the first report
+    to hold an image, spp and method wins."""
+    d: dict[tuple[str, int | None, int], dict[str, tuple[float, float]]] = collections.defaultdict(dict)
+    for f in files:
+        doc = json.load(open(f))
+        seeds = {im["id"]: im.get("seed") for im in doc.get("images", []) if "seed" in im}
+        for x in doc["rows"]:
+            # The scene is the image folder's name up to its first "_"; the folder above it (e.g.
+            # `--data data/scene_inputs`) may hold "_" too, so it must not enter the key.
+            key = (x["image"].rsplit("/", 1)[-1].split("_")[0], _seed(x["image"], seeds), x["spp"])
+            d[key].setdefault(x["method"], (x["relmse"], x["psnr"]))
+    return d
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("args", nargs="+", metavar="RESULTS_JSON... OLD NEW")
@@ -34,13 +49,7 @@ def main() -> None:
     if len(a.args) < 3:
         ap.error("give one or more results.json, then OLD and NEW")
     *files, old, new = a.args
-    d: dict[tuple[str, int | None, int], dict[str, tuple[float, float]]] = collections.defaultdict(dict)
-    for f in files:
-        doc = json.load(open(f))
-        seeds = {im["id"]: im.get("seed") for im in doc.get("images", []) if "seed" in im}
-        for x in doc["rows"]:
-            key = (x["image"].split("_")[0], _seed(x["image"], seeds), x["spp"])
-            d[key].setdefault(x["method"], (x["relmse"], x["psnr"]))
+    d = collect(files)
     for spp in sorted({k[2] for k in d}):
         sc = {k[:2]: v for k, v in d.items() if k[2] == spp and old in v and new in v}
         for m in (old, new, a.baseline, "noisy"):
