@@ -1,4 +1,4 @@
-"""Scripts that read eval reports (scripts/compare_on_valscenes.py)."""
+"""Scripts that read eval reports (scripts/compare_on_valscenes.py, scripts/bright_share_vs_ratio.py)."""
 
 from __future__ import annotations
 
@@ -42,3 +42,20 @@ def test_compare_on_valscenes_first_report_wins(tmp_path: Path) -> None:
     b = _report(tmp_path / "b.json", "x_y/", ["lamp"], [7], 0.5)
     assert cmp.collect([str(a), str(b)])[("lamp", 7, 4)]["old"][0] == 0.1
     assert cmp.collect([str(b), str(a)])[("lamp", 7, 4)]["old"][0] == 0.5
+
+
+def test_bright_share_and_spearman() -> None:
+    """Catches a share taken over the darkest pixels or per channel instead of luminance, and a rank
+    correlation that is not invariant to monotone maps (or has the wrong sign)."""
+    import numpy as np
+
+    bs = _load("bright_share_vs_ratio")
+    img = np.full((8, 8, 3), 1.0)
+    img[2, 3] = (97.0, 97.0, 97.0)  # one small bright light: 97 of the image's 160 units of luminance
+    assert bs.bright_share(img, 1) == np.float64(97.0 / 160.0)
+    img[5, 5] = (0.0, 3.0, 0.0)  # luminance 1, the same as its neighbours: the share of one pixel stays put
+    assert abs(bs.bright_share(img, 1) - 97.0 / 160.0) < 1e-12
+    assert bs.bright_share(np.zeros((4, 4, 3)), 2) == 0.0
+    x = np.array([0.1, 0.5, 0.2, 0.9, 0.3])
+    assert abs(bs.spearman(x, np.exp(5 * x)) - 1.0) < 1e-12
+    assert abs(bs.spearman(x, -x ** 3) + 1.0) < 1e-12
