@@ -54,8 +54,8 @@ def main() -> None:
     print(f"{'image':<36} share  " + "  ".join(f"{m[:16]:>16}" for m in a.new))
     for k in np.argsort(-share):
         print(f"{ids[k]:<36} {share[k]:.3f}  " + "  ".join(f"{ratio[m][k]:>16.3f}" for m in a.new))
+    top = share >= np.quantile(share, 0.75)
     for m in a.new:
-        top = share >= np.quantile(share, 0.75)
         print(f"{m}: worse than {a.old} on {int((ratio[m] > 1).sum())} of {len(ids)}; geometric-mean ratio "
               f"{np.exp(np.log(ratio[m]).mean()):.4f} (brightest-share quarter {np.exp(np.log(ratio[m][top]).mean()):.4f}); "
               f"Spearman with the share {spearman(share, ratio[m]):+.3f}")

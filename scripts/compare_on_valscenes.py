@@ -5,6 +5,7 @@ each seed and on how many seeds the new model's mean is the better one.
 
     python scripts/compare_on_valscenes.py reports/val_RUN/results.json OLD NEW [--baseline oidn-high]
     python scripts/compare_on_valscenes.py reports/new/results.json reports/old/results.json OLD NEW
+    python scripts/compare_on_valscenes.py ... OLD NEW --per-scene   # + NEW / OLD per scene, over the seeds
 
 Several reports are merged (the first one to hold an image, spp and method wins), so a model
 scored alone can be compared with one scored in another run on the same inputs.
@@ -41,10 +42,18 @@ def collect(files: list[str]) -> dict[tuple[str, int | None, int], dict[str, tup
     return d
 
 
+def scene_ratios(sc: dict[tuple[str, int | None], dict[str, tuple[float, float]]], old: str, new: str) -> dict[str, float]:
+    """Per scene, NEW's mean relMSE over its renderings (seeds) divided by OLD's."""
+    return {s: float(np.mean([v[new][0] for k, v in sc.items() if k[0] == s]) /
+                     np.mean([v[old][0] for k, v in sc.items() if k[0] == s])) for s in sorted({k[0] for k in sc})}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("args", nargs="+", metavar="RESULTS_JSON... OLD NEW")
     ap.add_argument("--baseline", default="oidn-high")
+    ap.add_argument("--per-scene", action="store_true",
+                    help="also print, per scene, NEW's mean relMSE over the seeds divided by OLD's")
     a = ap.parse_args()
     if len(a.args) < 3:
         ap.error("give one or more results.json, then OLD and NEW")
@@ -74,6 +83,9 @@ def main() -> None:
             print("        x " + a.baseline + ": " + " ".join(
                 f"{k[0]} {v[new][0] / v[a.baseline][0]:.2f} ({v[old][0] / v[a.baseline][0]:.2f})"
                 for k, v in sorted(sc.items(), key=str) if a.baseline in v))
+        if a.per_scene:
+            print(f"        {new} / {old}, mean relMSE per scene: " +
+                  " ".join(f"{s} {r:.3f}" for s, r in scene_ratios(sc, old, new).items()))
 
 
 if __name__ == "__main__":

@@ -327,13 +327,9 @@ def test_probe_rule_picks_the_lowest_sum_among_settings_nowhere_below_the_unclam
     """scripts/consistency_probe.py's rule: catches a setting admitted though its PSNR is below the
     unclamped at one spp, a choice by the wrong spp's figure instead of the sum, or a choice made
     when nothing is eligible."""
-    import importlib.util
-    from pathlib import Path
+    from repo_scripts import load_script
 
-    path = Path(__file__).resolve().parent.parent / "scripts" / "consistency_probe.py"
-    spec = importlib.util.spec_from_file_location("_consistency_probe", path)
-    probe = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(probe)
+    probe = load_script("consistency_probe")
     figures = {"none": {4: (0.10, 26.0), 8: (0.08, 27.0)},
                "k 3": {4: (0.05, 25.9), 8: (0.05, 27.1)},  # lowest sum, but below at 4 spp
                "k 4": {4: (0.10, 26.0), 8: (0.07, 27.1)},

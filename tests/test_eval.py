@@ -23,6 +23,7 @@ from mcdenoise.eval import EvalError, evaluate
 from mcdenoise.eval.metrics import METRICS
 from mcdenoise.eval.oidn import oidn_available
 from mcdenoise.models.registry import build_model
+from repo_scripts import load_script
 from train_tiny_data import make_tiny_dataset
 
 SPP = (2, 4, 8, 16)  # the tiny images store 8: 16 must be skipped with a note
@@ -203,8 +204,6 @@ def test_cli_save_images_feed_blend_outputs(data: Path, models: list[Path], tmp_
                                             capsys: pytest.CaptureFixture[str]) -> None:
     """Catches --save-images not reaching evaluate (no EXRs), saved outputs that differ from the scored
     ones, and scripts/blend_outputs.py mixing up members, weights or its median."""
-    import importlib.util
-
     from mcdenoise.eval.scores import image_metrics
     from mcdenoise.io.exr import read_exr
 
@@ -220,10 +219,7 @@ def test_cli_save_images_feed_blend_outputs(data: Path, models: list[Path], tmp_
     outs = {m: read_exr(folder / "4spp" / f"{m}.exr")["radiance"] for m in ("noisy", "wskp_rand", "layer_rand")}
     assert image_metrics(outs["wskp_rand"], ref, ["relmse"])["relmse"] == pytest.approx(row["relmse"], rel=1e-6)
 
-    path = Path(__file__).resolve().parent.parent / "scripts" / "blend_outputs.py"
-    spec = importlib.util.spec_from_file_location("_blend_outputs", path)
-    blend = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(blend)
+    blend = load_script("blend_outputs")
     a, b, n = outs["wskp_rand"], outs["layer_rand"], outs["noisy"]
     np.testing.assert_allclose(blend.apply_blend(blend.parse_blend("x=wskp_rand+layer_rand"), outs), (a + b) / 2, rtol=1e-6)
     np.testing.assert_allclose(blend.apply_blend(blend.parse_blend("x=0.25*wskp_rand+0.75*layer_rand"), outs),
