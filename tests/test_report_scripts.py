@@ -1,4 +1,5 @@
-"""Scripts that read eval reports (scripts/compare_on_valscenes.py, scripts/bright_share_vs_ratio.py)."""
+"""Scripts that read eval reports (scripts/compare_on_valscenes.py, scripts/bright_share_vs_ratio.py,
+scripts/ratio_by_lighting.py)."""
 
 from __future__ import annotations
 
@@ -60,3 +61,41 @@ def test_compare_on_valscenes_scene_ratios_average_seeds_before_dividing(tmp_pat
     sc = {("bath", 7): {"old": (1.0, 0.0), "new": (2.0, 0.0)}, ("bath", 8): {"old": (3.0, 0.0), "new": (2.0, 0.0)},
           ("lamp", 7): {"old": (0.5, 0.0), "new": (0.25, 0.0)}}
     assert cmp.scene_ratios(sc, "old", "new") == {"bath": 1.0, "lamp": 0.5}
+
+
+def _meta(kind: str, window: bool, bulbs: int) -> dict:
+    return {"extra": {"procedural": {"kind": kind, "rich": {"window": window, "small_emitters": bulbs, "night": False}}}}
+
+
+def test_ratio_by_lighting_groups_and_geometric_means(tmp_path: Path, monkeypatch, capsys) -> None:
+    """Catches bulbs counted from the wrong field (every rich image would be "bulbs"), a classic or
+    scene-file image sent to a procedural group, an arithmetic mean of ratios (one outlier image would
+    hold the group), and rows of other spp or methods mixed into a group."""
+    rl = load_script("ratio_by_lighting")
+    assert rl.lighting_group(_meta("indoor", True, 0)) == "no bulbs"
+    assert rl.lighting_group(_meta("indoor", True, 2), detail=True) == "window, bulbs"
+    assert rl.lighting_group(_meta("indoor", False, 0), detail=True) == "lamps, no bulbs"
+    assert rl.lighting_group(_meta("outdoor", False, 1), detail=True) == "outdoor, bulbs"
+    assert rl.lighting_group({"extra": {"procedural": {"kind": "indoor"}}}) == "no bulbs"  # classic world
+    assert rl.lighting_group({"extra": {}}) == "scene file"
+    n, g = rl.geo_ratios({"a": [(4.0, 1.0), (1.0, 4.0)]})["a"]
+    assert n == 2 and abs(g - 1.0) < 1e-12  # arithmetic: 2.125
+
+    images, rows = [], []
+    for i, (meta, ratio) in enumerate([(_meta("indoor", True, 3), 0.5), (_meta("outdoor", False, 0), 2.0),
+                                       (_meta("outdoor", False, 0), 8.0)]):
+        d = tmp_path / f"im{i}"
+        d.mkdir()
+        (d / "meta.json").write_text(json.dumps(meta))
+        images.append({"id": f"im{i}", "path": str(d)})
+        rows += [{"image": f"im{i}", "spp": 4, "method": "old", "relmse": 0.1},
+                 {"image": f"im{i}", "spp": 4, "method": "new", "relmse": 0.1 * ratio},
+                 {"image": f"im{i}", "spp": 8, "method": "new", "relmse": 99.0},
+                 {"image": f"im{i}", "spp": 4, "method": "other", "relmse": 99.0}]
+    report = tmp_path / "results.json"
+    report.write_text(json.dumps({"images": images, "rows": rows}))
+    monkeypatch.setattr("sys.argv", ["ratio_by_lighting.py", str(report), "old", "new", "--spp", "4"])
+    rl.main()
+    line = capsys.readouterr().out.splitlines()[-1].split()
+    assert line[:2] == ["4", "new"]
+    assert line[2:] == ["0.5000", "(n=1)", "4.0000", "(n=2)"]

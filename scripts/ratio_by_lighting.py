@@ -1,0 +1,73 @@
+"""Where does a model win or lose against another: per kind of lighting of our procedural images.
+Per image of an eval report, NEW's relMSE divided by OLD's, grouped by what the generator put in
+the scene (its ``meta.json``): small bright emitters (the rich world's bulbs) or none, and with
+``--detail`` also indoor with a window, indoor with lamps, or outdoor. Prints per spp and group
+the number of images and the geometric-mean ratio. Images without procedural metadata (renders of
+scene files) form one group, ``scene file``.
+
+Campaign 26 asked it of OIDN against layer-medium: on our held-out images with small bright
+emitters layer-medium wins, on those without it loses, as on the third-party scenes.
+
+    python scripts/ratio_by_lighting.py reports/c24_heldout/results.json oidn-high layer-medium --spp 4 8 16
+"""
+from __future__ import annotations
+
+import argparse
+import collections
+import json
+import math
+from pathlib import Path
+
+
+def lighting_group(meta: dict, detail: bool = False) -> str:
+    """The group of one image from its ``meta.json`` document: ``bulbs`` / ``no bulbs`` (the rich
+    world's small emitters; the classic world has none), prefixed with ``window``, ``lamps`` or
+    ``outdoor`` when ``detail``; ``scene file`` when the image is not procedural."""
+    proc = (meta.get("extra") or {}).get("procedural")
+    if not isinstance(proc, dict):
+        return "scene file"
+    rich = proc.get("rich") or {}
+    group = "bulbs" if rich.get("small_emitters", 0) > 0 else "no bulbs"
+    if not detail:
+        return group
+    where = "outdoor" if proc.get("kind") == "outdoor" else ("window" if rich.get("window") else "lamps")
+    return f"{where}, {group}"
+
+
+def geo_ratios(pairs: dict[str, list[tuple[float, float]]]) -> dict[str, tuple[int, float]]:
+    """group -> [(new, old) relMSE per image] -> group -> (images, geometric mean of new / old)."""
+    return {g: (len(v), math.exp(sum(math.log(n / o) for n, o in v) / len(v))) for g, v in pairs.items() if v}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("report", type=Path, help="results.json of `mcdenoise eval`")
+    ap.add_argument("old", help="the method every ratio is taken against")
+    ap.add_argument("new", nargs="+", help="methods whose relMSE is divided by OLD's")
+    ap.add_argument("--spp", type=int, nargs="+", default=[4, 8, 16])
+    ap.add_argument("--detail", action="store_true", help="also split by window, lamps and outdoor")
+    a = ap.parse_args()
+    doc = json.loads(a.report.read_text())
+    group = {im["id"]: lighting_group(json.loads((Path(im["path"]) / "meta.json").read_text()), a.detail)
+             for im in doc["images"]}
+    rel: dict[tuple[str, int], dict[str, float]] = collections.defaultdict(dict)
+    for r in doc["rows"]:
+        rel[(r["image"], r["spp"])][r["method"]] = r["relmse"]
+    for m in (a.old, *a.new):
+        if not any(m in v for v in rel.values()):
+            ap.error(f"{a.report}: no rows for {m}")
+    groups = sorted(set(group.values()))
+    print(f"{'spp':>3}  {'method':<20} " + "  ".join(f"{g:>22}" for g in groups))
+    for spp in a.spp:
+        for m in a.new:
+            pairs: dict[str, list[tuple[float, float]]] = collections.defaultdict(list)
+            for (i, s), v in rel.items():
+                if s == spp and m in v and a.old in v:
+                    pairs[group[i]].append((v[m], v[a.old]))
+            res = geo_ratios(pairs)
+            cells = [f"{res[g][1]:.4f} (n={res[g][0]})" if g in res else "-" for g in groups]
+            print(f"{spp:>3}  {m[:20]:<20} " + "  ".join(f"{c:>22}" for c in cells))
+
+
+if __name__ == "__main__":
+    main()
