@@ -175,3 +175,39 @@ def test_russian_roulette_depth_reaches_the_renders_and_the_recipe(tmp_path: Pat
     assert "--rr-depth" not in dataset_command(_dataset(tmp_path / "e", DatasetConfig(count=3, spp=4, variant="llvm_ad_rgb")))
     with pytest.raises(Exception, match="rr_depth"):
         DatasetConfig(count=2, rr_depth=0).check()
+
+
+def test_small_emitter_rate_reaches_the_generator_and_the_recipe(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Bug caught: ``--small-emitters`` parsed but not passed to the generator (the dataset would
+    silently keep every small emitter), a recipe that drops it, a manifest hash blind to it, an old
+    dataset.json that gains the key (its manifest hash would change), or a rate out of [0, 1] or
+    with the classic world (which draws none) accepted."""
+    import mcdenoise.render.procedural as procedural
+    from mcdenoise.render.procedural_image import render_procedural_image
+
+    assert _parse("mcdenoise dataset --out d --count 2 --world rich --small-emitters 0.25").small_emitters == 0.25
+    seen: dict = {}
+
+    class Drawn(Exception):
+        pass
+
+    def fake_generate(seed: int, **kw: object) -> None:
+        seen.update(kw)
+        raise Drawn
+
+    monkeypatch.setattr(procedural, "generate", fake_generate)
+    with pytest.raises(Drawn):
+        render_procedural_image(DatasetConfig(count=1, world="detailed", small_emitters=0.0, views=2), tmp_path, 0,
+                                ["proc_000000/view_000"])
+    assert seen["small_emitters"] == 0.0 and seen["world"] == "detailed"
+    base = DatasetConfig(count=3, spp=4, variant="llvm_ad_rgb", world="rich")
+    a = _dataset(tmp_path / "a", base)
+    b = _dataset(tmp_path / "b", DatasetConfig(**{**base.__dict__, "small_emitters": 0.25}))
+    assert "small_emitters" not in json.loads((a / "dataset.json").read_text())
+    assert manifest_hash(a) != manifest_hash(b)
+    assert _parse(dataset_command(b)).small_emitters == 0.25
+    assert "--small-emitters" not in dataset_command(a)
+    for bad in ({"small_emitters": 1.5}, {"small_emitters": -0.1}, {"small_emitters": 0.5, "world": "classic"}):
+        with pytest.raises(Exception, match="small_emitters"):
+            DatasetConfig(**{**base.__dict__, **bad}).check()
+    DatasetConfig(**{**base.__dict__, "small_emitters": 0.0}).check()

@@ -56,3 +56,31 @@ def test_unknown_world_is_refused() -> None:
     with pytest.raises(SceneError, match="world"):
         P._draw(0, None, 32, 32, (10, 20), "richer")
     assert EXPOSURE_RANGE["rich"][1] / EXPOSURE_RANGE["rich"][0] >= 100  # orders of magnitude between scenes
+
+
+def test_small_emitter_rate_drops_only_the_small_emitters() -> None:
+    """Catches a rate that changes the rest of the scene (room, window, night, materials: the data
+    would differ in more than the one property the option names), one that leaves a bulb behind, one
+    whose default (None) or rate 1 changes any draw (every rich and detailed dataset would change),
+    and a rate that is not a probability per scene."""
+    kept = dropped = 0
+    for s in range(40):
+        base = P._draw(s, None, 32, 32, (10, 20), "detailed")
+        assert P.scene_digest(P._draw(s, None, 32, 32, (10, 20), "detailed", 1.0).scene) == P.scene_digest(base.scene)
+        assert "small_emitters_dropped" not in base.info["rich"]
+        none = P._draw(s, None, 32, 32, (10, 20), "detailed", 0.0)
+        n = base.info["rich"]["small_emitters"]
+        assert none.info["rich"]["small_emitters"] == 0 and none.info["rich"]["small_emitters_dropped"] == n
+        assert not [k for k in none.scene if k.startswith("bulb_")]
+        assert sorted(none.scene) == sorted(k for k in base.scene if not k.startswith("bulb_"))
+        # The camera may refocus (a bulb can no longer be what it focuses on); everything else is as drawn.
+        for k in none.scene:
+            if k != "sensor":
+                assert P.scene_digest({"x": none.scene[k]}) == P.scene_digest({"x": base.scene[k]}), (s, k)
+        assert {k: v for k, v in none.info["rich"].items() if "small" not in k} == \
+            {k: v for k, v in base.info["rich"].items() if "small" not in k}
+        if n:
+            half = P._draw(s, None, 32, 32, (10, 20), "detailed", 0.5)
+            kept += half.info["rich"]["small_emitters"] == n
+            dropped += half.info["rich"].get("small_emitters_dropped", 0) == n
+    assert kept + dropped >= 20 and min(kept, dropped) >= 0.2 * (kept + dropped), (kept, dropped)

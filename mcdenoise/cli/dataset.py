@@ -57,6 +57,9 @@ def add_parser(p: argparse.ArgumentParser) -> None:
                    help="procedural world: classic; rich (window-lit rooms, small bright emitters, night, "
                         "exposure over 2.3 decades); detailed (rich plus fine surface detail: tiles, print, fabric, "
                         "speckle, wood grain, cobbles, varying roughness; docs/DATASETS.md) (default classic)")
+    p.add_argument("--small-emitters", type=float, default=None, metavar="P",
+                   help="rich and detailed worlds: probability that a scene keeps the small bright emitters it "
+                        "drew, the rest of it unchanged (default: all kept; docs/DATASETS.md)")
     p.add_argument("--generator", type=int, default=None,
                    help="scene pipeline version (default: the latest; a dataset made by an older one names it "
                         "in dataset.json, and its recipe states it)")
@@ -119,7 +122,7 @@ def run(args: argparse.Namespace) -> int:
     cfg = DatasetConfig(
         count=args.count, seed=args.seed, spp=args.spp, ref_spp=args.ref_spp, width=w, height=h,
         frames=args.frames, max_depth=args.max_depth, rr_depth=args.rr_depth, kind=args.kind, fractions=parse_split(args.split),
-        objects=parse_objects(args.objects), views=args.views, world=args.world,
+        objects=parse_objects(args.objects), views=args.views, world=args.world, small_emitters=args.small_emitters,
         variant=variant, **({} if args.generator is None else {"generator": args.generator}),
     )
     summary = render_dataset(args.out, cfg, shard=shard, shards=shards, progress=not args.no_progress,

@@ -80,6 +80,8 @@ def dataset_command(data_dir: str | Path) -> str:
         args += ["--rr-depth", str(d["rr_depth"])]
     if d.get("world", "classic") != "classic":
         args += ["--world", d["world"]]
+    if d.get("small_emitters") is not None:
+        args += ["--small-emitters", f"{d['small_emitters']:g}"]
     lo, hi = d.get("objects", [10, 50])
     if [lo, hi] != [10, 50]:
         args += ["--objects", f"{lo}-{hi}"]

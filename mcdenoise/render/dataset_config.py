@@ -79,6 +79,9 @@ class DatasetConfig:
             ``cuda_ad_rgb`` on a GPU: they give other pixels for the same seed). None: the
             process's variant, recorded in dataset.json when the dataset is created; a
             dataset.json written before the field existed has none (its images' meta.json name it).
+        small_emitters: probability that a scene of the rich or detailed world keeps the small
+            bright emitters it drew (docs/DATASETS.md); None: all kept. Recorded only when set,
+            so every dataset made before the field keeps its dataset.json and manifest.
     """
 
     count: int
@@ -97,6 +100,7 @@ class DatasetConfig:
     world: str = "classic"
     variant: str | None = None
     rr_depth: int = 5
+    small_emitters: float | None = None
 
     def check(self) -> None:
         from mcdenoise.render.procedural import KINDS
@@ -120,6 +124,12 @@ class DatasetConfig:
             raise SceneError(f"dataset: world {self.world!r} is not one of {', '.join(WORLDS)}")
         if self.variant is not None and self.variant not in RENDER_VARIANTS:
             raise SceneError(f"dataset: Mitsuba variant {self.variant!r} is not one of {', '.join(RENDER_VARIANTS)}")
+        p = self.small_emitters
+        if p is not None:
+            if isinstance(p, bool) or not isinstance(p, (int, float)) or not 0 <= p <= 1:
+                raise SceneError(f"dataset: small_emitters={p!r} must be a probability in [0, 1]")
+            if self.world == "classic":
+                raise SceneError("dataset: small_emitters needs the rich or detailed world (the classic world has none)")
         if self.kind is not None and self.kind not in KINDS:
             raise SceneError(f"dataset: kind {self.kind!r} is not one of {', '.join(KINDS)}")
         lo, hi = self.objects
@@ -137,6 +147,8 @@ class DatasetConfig:
             del d["variant"]
         if d["rr_depth"] == 5:  # the default before the field existed: not recorded, as above
             del d["rr_depth"]
+        if d["small_emitters"] is None:  # not recorded, as above
+            del d["small_emitters"]
         return {"format": "mcdenoise-procedural-dataset", "version": 1, **d}
 
     def settings(self) -> dict[str, Any]:

@@ -28,11 +28,14 @@ KINDS = ("indoor", "outdoor")
 
 def _draw(
     seed: int, kind: str | None, width: int, height: int, objects: tuple[int, int] = (MIN_OBJECTS, MAX_OBJECTS),
-    world: str = "classic",
+    world: str = "classic", small_emitters: float | None = None,
 ) -> ProceduralScene:
     """Draw one scene from ``seed`` without any check; ``world`` is ``classic``, ``rich``
     (:mod:`~mcdenoise.render.procedural.rich`) or ``detailed`` (rich plus
-    :mod:`~mcdenoise.render.procedural.detail`), each addition drawn from a stream of its own."""
+    :mod:`~mcdenoise.render.procedural.detail`), each addition drawn from a stream of its own.
+
+    ``small_emitters``: the probability that a rich or detailed scene keeps the small bright
+    emitters it drew (decided from a stream of its own); None keeps them all, as before the option."""
     if world not in WORLDS:
         raise SceneError(f"unknown procedural world {world!r}; worlds: {', '.join(WORLDS)}")
     rng = np.random.default_rng(seed)
@@ -49,7 +52,8 @@ def _draw(
     dof = bool(rng.random() < 0.5)
     motion = bool(rng.random() < 0.5)
     cam = (_indoor if kind == "indoor" else _outdoor)(b, n_objects)
-    rich = enrich(b, kind, np.random.default_rng(derive_seed(seed, 0x51C4))) if world != "classic" else None
+    keep_small = small_emitters is None or bool(np.random.default_rng(derive_seed(seed, 0xB01B)).random() < small_emitters)
+    rich = enrich(b, kind, np.random.default_rng(derive_seed(seed, 0x51C4)), keep_small) if world != "classic" else None
     if detailer is not None:  # its own stream, meshes first (as drawn): rich draws stay as they are
         assert rich is not None
         rich["detail"] = detailer.finish(b.scene)

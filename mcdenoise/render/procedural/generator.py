@@ -42,11 +42,13 @@ def generate(
     keep_loaded: bool = False,
     world: str = "classic",
     stack: bool = False,
+    small_emitters: float | None = None,
 ) -> ProceduralScene:
     """Draw a scene from ``seed``; with ``check``, re-draw rejected ones from derived seeds.
 
     ``world``: ``classic`` (the original generator) or ``rich`` (windows, small bright emitters,
-    night, a wider exposure range: :mod:`~mcdenoise.render.procedural.rich`).
+    night, a wider exposure range: :mod:`~mcdenoise.render.procedural.rich`). ``small_emitters``:
+    the probability that a rich scene keeps its small bright emitters (None: always).
 
     ``width``/``height`` set the film in the dict. ``objects`` is the (min, max) number of
     objects: indoor scenes count their furniture pieces in it when there is room. JIT compilation
@@ -66,7 +68,7 @@ def generate(
     reasons: list[str] = []
     for attempt in range(max_attempts):
         drawn = seed if attempt == 0 else derive_seed(seed, attempt)
-        ps = _draw(drawn, kind, width, height, objects, world)
+        ps = _draw(drawn, kind, width, height, objects, world, small_emitters)
         ps.seed, ps.drawn_seed, ps.attempts = seed, drawn, attempt
         if keep_loaded:
             ps.loaded = load_procedural(ps, width, height)

@@ -153,8 +153,12 @@ def _dim_sky(b: _Builder, rng: np.random.Generator) -> None:
         sky["sky_scale"] = float(sky.get("sky_scale", 1.0) * k)
 
 
-def enrich(b: _Builder, kind: str, rng: np.random.Generator) -> dict[str, object]:
-    """Add the rich world's features to the drawn layout in ``b``; returns what was added (for meta.json)."""
+def enrich(b: _Builder, kind: str, rng: np.random.Generator, keep_small: bool = True) -> dict[str, object]:
+    """Add the rich world's features to the drawn layout in ``b``; returns what was added (for meta.json).
+
+    ``keep_small=False`` removes the small bright emitters once everything is drawn, so the scene is
+    otherwise the one drawn with them (same room, window, night and stream); ``small_emitters_dropped``
+    then says how many went (the key is absent otherwise, as in every draw made before the option)."""
     added: dict[str, object] = {"window": False, "small_emitters": 0, "night": False}
     if kind == "indoor":
         if rng.random() < 0.5:
@@ -170,5 +174,13 @@ def enrich(b: _Builder, kind: str, rng: np.random.Generator) -> dict[str, object
         if added["night"] or rng.random() < 0.5:
             n = int(rng.integers(1, 9))
             _small_emitters(b, rng, n, indoor=False)
-    added["small_emitters"] = sum(1 for e in b.emitters if e.startswith("bulb_"))
+    bulbs = [e for e in b.emitters if e.startswith("bulb_")]
+    if not keep_small:
+        for lid in bulbs:
+            del b.scene[lid]
+            b.extents.pop(lid, None)
+        b.emitters[:] = [e for e in b.emitters if e not in bulbs]
+        added["small_emitters_dropped"] = len(bulbs)
+        bulbs = []
+    added["small_emitters"] = len(bulbs)
     return added
