@@ -46,6 +46,7 @@ def main() -> None:
     ap.add_argument("new", nargs="+", help="methods whose relMSE is divided by OLD's")
     ap.add_argument("--spp", type=int, nargs="+", default=[4, 8, 16])
     ap.add_argument("--detail", action="store_true", help="also split by window, lamps and outdoor")
+    ap.add_argument("--all", action="store_true", help="also one column over every image of the report")
     a = ap.parse_args()
     doc = json.loads(a.report.read_text())
     group = {im["id"]: lighting_group(json.loads((Path(im["path"]) / "meta.json").read_text()), a.detail)
@@ -56,7 +57,7 @@ def main() -> None:
     for m in (a.old, *a.new):
         if not any(m in v for v in rel.values()):
             ap.error(f"{a.report}: no rows for {m}")
-    groups = sorted(set(group.values()))
+    groups = sorted(set(group.values())) + (["all images"] if a.all else [])
     print(f"{'spp':>3}  {'method':<20} " + "  ".join(f"{g:>22}" for g in groups))
     for spp in a.spp:
         for m in a.new:
@@ -64,6 +65,8 @@ def main() -> None:
             for (i, s), v in rel.items():
                 if s == spp and m in v and a.old in v:
                     pairs[group[i]].append((v[m], v[a.old]))
+                    if a.all:
+                        pairs["all images"].append((v[m], v[a.old]))
             res = geo_ratios(pairs)
             cells = [f"{res[g][1]:.4f} (n={res[g][0]})" if g in res else "-" for g in groups]
             print(f"{spp:>3}  {m[:20]:<20} " + "  ".join(f"{c:>22}" for c in cells))

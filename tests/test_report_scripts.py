@@ -99,3 +99,7 @@ def test_ratio_by_lighting_groups_and_geometric_means(tmp_path: Path, monkeypatc
     line = capsys.readouterr().out.splitlines()[-1].split()
     assert line[:2] == ["4", "new"]
     assert line[2:] == ["0.5000", "(n=1)", "4.0000", "(n=2)"]
+    monkeypatch.setattr("sys.argv", ["ratio_by_lighting.py", str(report), "old", "new", "--spp", "4", "--all"])
+    rl.main()
+    # Catches an "all images" column that leaves a group out or counts an image twice: (0.5 * 2 * 8) ** (1/3).
+    assert capsys.readouterr().out.splitlines()[-1].split()[-2:] == ["2.0000", "(n=3)"]
