@@ -1,7 +1,8 @@
 """Two models side by side on eval reports of the third-party scenes: means, per-scene ratios to
 OIDN high, how many scenes the new one improves, and where either is worse than the noisy input.
 With several render seeds (``mcdenoise eval --scenes ... --render-seed 7 8 9``), also the means of
-each seed and on how many seeds the new model's mean is the better one.
+each seed and on how many seeds the new model's mean is the better one. Means print with 5 digits of
+relMSE and 4 decimals of PSNR, since a shipping rule compares them and legs differ by a few mdB.
 
     python scripts/compare_on_valscenes.py reports/val_RUN/results.json OLD NEW [--baseline oidn-high]
     python scripts/compare_on_valscenes.py reports/new/results.json reports/old/results.json OLD NEW
@@ -63,8 +64,8 @@ def main() -> None:
         sc = {k[:2]: v for k, v in d.items() if k[2] == spp and old in v and new in v}
         for m in (old, new, a.baseline, "noisy"):
             if all(m in v for v in sc.values()):
-                print(f"{spp:>3} spp {m:<28} relMSE {np.mean([v[m][0] for v in sc.values()]):.4f}  "
-                      f"PSNR {np.mean([v[m][1] for v in sc.values()]):.2f}")
+                print(f"{spp:>3} spp {m:<28} relMSE {np.mean([v[m][0] for v in sc.values()]):.5f}  "
+                      f"PSNR {np.mean([v[m][1] for v in sc.values()]):.4f}")
         better = sum(v[new][0] < v[old][0] for v in sc.values())
         print(f"        {new} better than {old} on {better}/{len(sc)} scene renderings")
         for m in (old, new):
@@ -75,8 +76,8 @@ def main() -> None:
         if len(seeds) > 1:
             per = {s: {m: np.mean([v[m] for k, v in sc.items() if k[1] == s], axis=0) for m in (old, new)} for s in seeds}
             for s in seeds:
-                print(f"        seed {s}: {old} {per[s][old][0]:.4f} / {per[s][old][1]:.2f}  "
-                      f"{new} {per[s][new][0]:.4f} / {per[s][new][1]:.2f}")
+                print(f"        seed {s}: {old} {per[s][old][0]:.5f} / {per[s][old][1]:.4f}  "
+                      f"{new} {per[s][new][0]:.5f} / {per[s][new][1]:.4f}")
             print(f"        {new}'s mean better on {sum(per[s][new][0] < per[s][old][0] for s in seeds)}/{len(seeds)} "
                   f"seeds in relMSE, {sum(per[s][new][1] > per[s][old][1] for s in seeds)}/{len(seeds)} in PSNR")
         else:
