@@ -93,6 +93,28 @@ def test_shard_renders_same_image_and_merges_by_copying(ds: Path, tmp_path: Path
     assert read_manifest(shard) == read_manifest(ds)
 
 
+def test_only_split_renders_the_full_runs_images_and_resumes_to_it(ds: Path, tmp_path: Path,
+                                                                   capsys: pytest.CaptureFixture[str]) -> None:
+    """Catches: --only-split rendering other pixels than a full run (a held-out set re-created on a
+    new machine would then not be the one the campaign scored), rendering the wrong scenes, or
+    leaving a folder that a plain rerun cannot complete into the full recipe's dataset."""
+    root = tmp_path / "val_first"
+    val = [e["path"] for e in read_manifest(ds) if e["split"] == "val"]
+    assert _run("--count", "3", "--out", str(root), "--only-split", "val", *TINY) == 0
+    assert [e["path"] for e in read_manifest(root)] == val
+    assert sorted(p.name for p in root.iterdir() if p.name.startswith("proc_")) == val
+    np.testing.assert_array_equal(_radiance(root / val[0]), _radiance(ds / val[0]))
+    assert [img.meta.scene for img in Dataset(root).images("val")] == val
+    capsys.readouterr()
+    assert _run("--count", "3", "--out", str(root), *TINY) == 0
+    assert "rendered 2 image(s)" in capsys.readouterr().out
+    assert read_manifest(root) == read_manifest(ds)
+    assert _run("--count", "3", "--out", str(tmp_path / "bad"), "--only-split", "valid", *TINY) == 1
+    err = capsys.readouterr().err
+    assert "--only-split" in err and "valid" in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "bad").exists()
+
+
 def test_resume_after_kill(ds: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     root = tmp_path / "resume"
     shutil.copytree(ds, root)

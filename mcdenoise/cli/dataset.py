@@ -69,6 +69,9 @@ def add_parser(p: argparse.ArgumentParser) -> None:
                         "Mitsuba's; 2 is cheaper and noisier per sample: docs/DATASETS.md)")
     p.add_argument("--objects", default="10-50", help="MIN-MAX objects per scene (default 10-50)")
     p.add_argument("--split", default="0.8,0.1,0.1", help="train,val,test fractions of scenes (default 0.8,0.1,0.1)")
+    p.add_argument("--only-split", default=None, metavar="SPLIT[,SPLIT]",
+                   help="render only the scenes the split puts in these splits (train, val, test), the same images "
+                        "a full run renders; a later run without it renders the rest")
     p.add_argument("--merge", action="store_true",
                    help="only rebuild manifest.json from the image folders in --out (damaged images are left out)")
     p.add_argument("--verify", type=Path, metavar="DIR",
@@ -125,8 +128,10 @@ def run(args: argparse.Namespace) -> int:
         objects=parse_objects(args.objects), views=args.views, world=args.world, small_emitters=args.small_emitters,
         variant=variant, **({} if args.generator is None else {"generator": args.generator}),
     )
+    splits = None if args.only_split is None else [s.strip() for s in args.only_split.split(",")]
     summary = render_dataset(args.out, cfg, shard=shard, shards=shards, progress=not args.no_progress,
-                             log=lambda s: print(s, file=sys.stderr), nonfinite=args.nonfinite, max_bytes=max_bytes(args))
+                             log=lambda s: print(s, file=sys.stderr), nonfinite=args.nonfinite, max_bytes=max_bytes(args),
+                             splits=splits)
     print(f"rendered {summary['rendered']} image(s) in {summary['seconds']:.1f} s, {summary['skipped']} already done; "
           f"manifest: {summary['manifest']}")
     return 0

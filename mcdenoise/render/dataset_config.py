@@ -13,7 +13,7 @@ import json
 import math
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
-from typing import Any
+from typing import Any, Collection
 
 import numpy as np
 
@@ -32,6 +32,8 @@ __all__ = [
     "scene_name",
     "image_paths",
     "shard_indices",
+    "split_indices",
+    "SPLITS",
     "recorded_variant",
     "images_variant",
 ]
@@ -190,6 +192,21 @@ def shard_indices(count: int, shard: int = 0, shards: int = 1) -> list[int]:
     if shards < 1 or not 0 <= shard < shards:
         raise SceneError(f"--shard {shard}/{shards}: need 0 <= i < n")
     return list(range(shard, count, shards))
+
+
+SPLITS = ("train", "val", "test")
+
+
+def split_indices(cfg: DatasetConfig, indices: list[int], splits: Collection[str]) -> list[int]:
+    """Those of ``indices`` whose scene the recipe's split (``cfg.fractions``, ``cfg.seed``) puts
+    in one of ``splits``."""
+    from mcdenoise.data.dataset import assign_splits
+
+    unknown = sorted(set(splits) - set(SPLITS))
+    if unknown or not splits:
+        raise SceneError(f"--only-split {','.join(splits)}: expected some of {', '.join(SPLITS)}")
+    of = assign_splits([scene_name(i) for i in range(cfg.count)], cfg.fractions, cfg.seed)
+    return [i for i in indices if of[scene_name(i)] in splits]
 
 
 def _read_config(root: Path) -> DatasetConfig | None:

@@ -34,7 +34,7 @@ import math
 import re
 import time
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Collection
 
 from mcdenoise.errors import SceneError
 from mcdenoise.io.safety import DEFAULT_MAX_BYTES, WriterLock, check_space
@@ -52,6 +52,7 @@ from mcdenoise.render.dataset_config import (  # noqa: F401
     recorded_variant,
     scene_name,
     shard_indices,
+    split_indices,
 )
 from mcdenoise.render.dataset_folder import _is_finished, clean_partial, finished_paths, rebuild_manifest  # noqa: F401
 from mcdenoise.render.procedural_image import VIEW_ATTEMPTS, render_procedural_image  # noqa: F401
@@ -82,11 +83,15 @@ def render_dataset(
     log: Callable[[str], None] | None = None,
     nonfinite: str = "sanitize",
     max_bytes: int | None = DEFAULT_MAX_BYTES,
+    splits: Collection[str] | None = None,
 ) -> dict[str, Any]:
     """Render the missing images of shard ``shard/shards`` into ``root``; returns a summary.
 
-    Rebuilds the manifest after each image and at the end (from a fresh scan, which picks up
-    folders other shards wrote meanwhile).
+    ``splits`` (e.g. ``{"val"}``) renders only the scenes the recipe's split puts there: the
+    same pixels as a full run's, since scene ``i`` depends only on (seed, i), so a new machine
+    gets a campaign's held-out images back without rendering its training scenes. A later
+    run without it renders the rest. Rebuilds the manifest after each image and at the end
+    (from a fresh scan, which picks up folders other shards wrote meanwhile).
     """
     from dataclasses import replace
 
@@ -100,6 +105,11 @@ def render_dataset(
     if root.exists() and not root.is_dir():
         raise SceneError(f"{root}: exists and is not a folder")
     indices = shard_indices(cfg.count, shard, shards)
+    if splits is not None:
+        n = len(indices)
+        indices = split_indices(cfg, indices, splits)
+        if log is not None:
+            log(f"{root}: only split(s) {','.join(sorted(splits))}: {len(indices)} of {n} scene(s)")
     # One writer per shard of a folder: a second run of the same (or an overlapping) shard is
     # refused; disjoint shards may share the folder. Taken before dataset.json is written.
     lock = WriterLock(root / f".lock.shard-{shard}-of-{shards}", f"shard {shard}/{shards}",
