@@ -1,5 +1,6 @@
 """Scripts that read eval reports (scripts/compare_on_valscenes.py, scripts/bright_share_vs_ratio.py,
-scripts/ratio_by_lighting.py)."""
+scripts/ratio_by_lighting.py,
+scripts/results_block_drift.py)."""
 
 from __future__ import annotations
 
@@ -103,3 +104,44 @@ def test_ratio_by_lighting_groups_and_geometric_means(tmp_path: Path, monkeypatc
     rl.main()
     # Catches an "all images" column that leaves a group out or counts an image twice: (0.5 * 2 * 8) ** (1/3).
     assert capsys.readouterr().out.splitlines()[-1].split()[-2:] == ["2.0000", "(n=3)"]
+
+
+def test_results_block_drift_reads_the_committed_block_and_flags_worse_than_noisy(tmp_path: Path) -> None:
+    """Catches a drift check that parses the wrong table (the means table as per-image values, or the
+    bold marks as text), pairs images by their full path instead of the scene, or that misses a model
+    worse than the noisy input in PSNR only."""
+    import numpy as np
+
+    drift = load_script("results_block_drift")
+    lines = drift.block_lines(Path("docs/RESULTS.md"), "valscenes")
+    means, per = drift.parse_block(lines)
+    # The committed block: 4 means rows per spp for OIDN and noisy, nine scenes per spp and method.
+    assert means[("noisy", 4)][0] > means[("oidn-high", 4)][0] > 0
+    assert sum(1 for (m, s, _) in per if m == "layer-medium" and s == 8) == 9
+    assert per[("combine-ens_kpcn", 4, "bathroom")] > 0  # a bold cell parses
+    rows = [{"image": f"data/scene_inputs/{im}_128x128_d8_spp16_seed7", "spp": s, "method": m,
+             "relmse": v * (1.01 if m == "layer-medium" else 1.0), "psnr": 20.0 if m == "noisy" else 25.0}
+            for (m, s, im), v in per.items()]
+    rows = [r for r in rows if not (r["method"] == "wskp" and r["spp"] == 16 and r["image"].find("/lamp_") > 0)]
+    rows.append({"image": "data/scene_inputs/lamp_128x128_d8_spp16_seed7", "spp": 16, "method": "wskp",
+                 "relmse": per[("wskp", 16, "lamp")], "psnr": 19.0})
+    (tmp_path / "r.json").write_text(json.dumps({"rows": rows}))
+    import contextlib
+    import io
+    import sys
+
+    out = io.StringIO()
+    argv, sys.argv = sys.argv, ["x", str(tmp_path / "r.json")]
+    try:
+        with contextlib.redirect_stdout(out):
+            drift.main()
+    finally:
+        sys.argv = argv
+    text = out.getvalue()
+    lm8 = next(s for s in text.splitlines() if s.startswith("layer-medium") and " 8 |" in s)
+    assert "+1.00%" in lm8 and "1.00e-02, 1.00e-02" in lm8, lm8
+    kp4 = next(s for s in text.splitlines() if s.startswith("kpcn ") and " 4 |" in s)
+    assert "0.00e+00, 0.00e+00" in kp4, kp4
+    assert "  wskp 16 spp: lamp PSNR 19.00 <= 20.00\n" in text and "worse than the noisy input" in text
+    assert text.count(" spp: ") == 1, text  # the block's own models beat noisy in relMSE everywhere
+    assert np.isfinite(means[("layer-medium", 16)][1])
