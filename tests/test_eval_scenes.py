@@ -63,6 +63,15 @@ def test_inputs_are_rendered_once_with_the_given_reference(scenes: Path, tmp_pat
     [other] = prepare_scene_inputs(cases, tmp_path / "work", spp=4, seed=4, progress=False)
     assert other != folder
     assert sorted(p.name for p in scenes.rglob("*")) == before  # the scenes folder is only read
+    # Inputs of an mcdenoise before the canonical emitter order (no mark in meta.json) hold one draw
+    # of Mitsuba's load-dependent order: they are rendered again, once.
+    meta = json.loads((folder / "meta.json").read_text())
+    assert meta["extra"]["emitter_sampling"] == "canonical-order"
+    del meta["extra"]["emitter_sampling"]
+    (folder / "meta.json").write_text(json.dumps(meta))
+    assert prepare_scene_inputs(cases, tmp_path / "work", spp=4, seed=3, progress=False) == [folder]
+    assert (folder / "samples.bin").stat().st_mtime_ns != stamp
+    assert json.loads((folder / "meta.json").read_text())["extra"]["emitter_sampling"] == "canonical-order"
 
 
 @pytest.mark.render

@@ -46,7 +46,10 @@ def xml_scene(mi):
 
 
 def _mi_render(mi, scene, spp: int, seed: int, max_depth: int = 6) -> np.ndarray:
+    from mcdenoise.render.emitter_order import emitter_order
+
     integ = mi.load_dict({"type": "mcdenoise_path", "max_depth": max_depth})
+    integ.emitter_order = emitter_order(mi, scene)  # as the renderer sets it (None unless mesh emitters)
     return np.array(mi.render(scene, integrator=integ, spp=spp, seed=seed)).transpose(2, 0, 1)
 
 

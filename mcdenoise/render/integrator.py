@@ -26,6 +26,8 @@ from __future__ import annotations
 
 from typing import Any
 
+from mcdenoise.render.emitter_order import sample_emitter_direction as _ordered_emitter_direction
+
 __all__ = [
     "INTEGRATOR_NAME",
     "LEVEL_RADIANCE",
@@ -101,6 +103,9 @@ def register() -> None:
                 raise ValueError("mcdenoise_path: max_depth must be >= 1")
             # BSDF registry id -> GGX alpha; filled by the renderer per scene (None = unknown: 0).
             self.roughness_table: Any = None
+            # (perm, distribution) of a canonical emitter order; set by the renderer for scenes
+            # whose emitter list Mitsuba shuffles between loads (emitter_order.py). None: Mitsuba's.
+            self.emitter_order: Any = None
 
         def aov_names(self) -> list[str]:
             return []
@@ -159,7 +164,11 @@ def register() -> None:
 
                 # Emitter sampling.
                 active_em = active_next & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
-                ds_em, em_weight = scene.sample_emitter_direction(si, sampler.next_2d(), True, active_em)
+                if dr.hint(self.emitter_order is not None, mode="scalar"):
+                    ds_em, em_weight = _ordered_emitter_direction(mi, dr, scene, si, sampler.next_2d(), active_em,
+                                                                  *self.emitter_order)
+                else:
+                    ds_em, em_weight = scene.sample_emitter_direction(si, sampler.next_2d(), True, active_em)
                 active_em &= ds_em.pdf != 0.0
                 wo = si.to_local(ds_em.d)
                 bsdf_val_em, bsdf_pdf_em = bsdf.eval_pdf(bsdf_ctx, si, wo, active_em)

@@ -10,6 +10,7 @@ import numpy as np
 
 from mcdenoise.errors import SceneError
 from mcdenoise.render._mitsuba import mitsuba
+from mcdenoise.render.emitter_order import emitter_order
 from mcdenoise.render.integrator import INTEGRATOR_NAME
 from mcdenoise.render.motion import _pose_objects
 from mcdenoise.render.prepared import _Prepared
@@ -75,6 +76,7 @@ def _prepare(scene: Any, settings: RenderSettings, camera_to_world: np.ndarray |
         )
     integrator = mi.load_dict({"type": INTEGRATOR_NAME, "max_depth": int(settings.max_depth), "rr_depth": int(settings.rr_depth)})
     integrator.roughness_table = _roughness_table(scene)
+    integrator.emitter_order = emitter_order(mi, scene)
     sensor = scene.sensors()[0]
     prep = _Prepared(
         integrator=integrator,
