@@ -28,14 +28,17 @@ def emitter_key(mi: Any, emitter: Any) -> tuple:
     box = tuple(float(v) for v in (*bb.min, *bb.max)) if bb.valid() else ()
     params: list[tuple[str, tuple[float, ...]]] = []
     for name, value in sorted(mi.traverse(emitter).items()):
+        shape = getattr(value, "shape", ())
+        if int(np.prod(shape)) > 16:  # a texture or an environment map: its size alone, not a copy
+            params.append((name, tuple(float(v) for v in shape)))
+            continue
         try:
             arr = np.asarray(value, dtype=np.float64).ravel()
         except (TypeError, ValueError):
             continue
-        if arr.size <= 16:
-            params.append((name, tuple(arr.tolist())))
-    shape = emitter.get_shape()
-    area = float(np.asarray(shape.surface_area()).ravel()[0]) if shape is not None else -1.0
+        params.append((name, tuple(arr.tolist())))
+    surface = emitter.get_shape()
+    area = float(np.asarray(surface.surface_area()).ravel()[0]) if surface is not None else -1.0
     return (emitter.class_name(), bool(emitter.is_environment()), box, float(emitter.sampling_weight()),
             tuple(params), area)
 
