@@ -1,6 +1,6 @@
 """Scripts that read eval reports (scripts/compare_on_valscenes.py, scripts/bright_share_vs_ratio.py,
 scripts/ratio_by_lighting.py,
-scripts/results_block_drift.py)."""
+scripts/results_block_drift.py, scripts/dataset_fingerprint.py)."""
 
 from __future__ import annotations
 
@@ -145,3 +145,36 @@ def test_results_block_drift_reads_the_committed_block_and_flags_worse_than_nois
     assert "  wskp 16 spp: lamp PSNR 19.00 <= 20.00\n" in text and "worse than the noisy input" in text
     assert text.count(" spp: ") == 1, text  # the block's own models beat noisy in relMSE everywhere
     assert np.isfinite(means[("layer-medium", 16)][1])
+
+
+def test_dataset_fingerprint_compares_per_image_and_names_what_differs(tmp_path: Path, capsys) -> None:
+    """Catches a comparison that passes when one image's pixels differ (a re-rendered held-out set
+    on another CPU would then be called identical), that counts a writer's hidden temporary folder,
+    or that cannot say which file differs."""
+    import sys
+
+    fp = load_script("dataset_fingerprint")
+    root = tmp_path / "ds"
+    for name, noisy in (("proc_000000", 11), ("proc_000001/view_000", 12), (".proc_000002.tmp", 13)):
+        (root / name).mkdir(parents=True)
+        (root / name / "meta.json").write_text(json.dumps({"checksums": {
+            "algorithm": "crc32", "samples_blocks": {"offset": 0, "crc": 5}, "samples_header": 6,
+            "noisy.exr": noisy, "reference.exr": 7}}))
+    prints = fp.fingerprints(root)
+    assert sorted(prints) == ["ds/proc_000000", "ds/proc_000001/view_000"]
+    saved = tmp_path / "fp.txt"
+    saved.write_text("".join(f"{k} {v}\n" for k, v in prints.items()))
+    argv = sys.argv
+    try:
+        sys.argv = ["x", str(root), "--compare", str(saved)]
+        assert fp.main() == 0
+        assert "2 of 2 images identical" in capsys.readouterr().out
+        meta = root / "proc_000001" / "view_000" / "meta.json"
+        doc = json.loads(meta.read_text())
+        doc["checksums"]["noisy.exr"] = 99
+        meta.write_text(json.dumps(doc))
+        assert fp.main() == 1
+        out = capsys.readouterr().out
+        assert "differs: ds/proc_000001/view_000 (noisy)" in out and "1 of 2 images identical, 1 differ" in out
+    finally:
+        sys.argv = argv
