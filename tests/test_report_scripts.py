@@ -1,6 +1,7 @@
 """Scripts that read eval reports (scripts/compare_on_valscenes.py, scripts/bright_share_vs_ratio.py,
 scripts/ratio_by_lighting.py,
-scripts/results_block_drift.py, scripts/dataset_fingerprint.py)."""
+scripts/results_block_drift.py, scripts/dataset_fingerprint.py,
+scripts/error_bands.py)."""
 
 from __future__ import annotations
 
@@ -178,3 +179,22 @@ def test_dataset_fingerprint_compares_per_image_and_names_what_differs(tmp_path:
         assert "differs: ds/proc_000001/view_000 (noisy)" in out and "1 of 2 images identical, 1 differ" in out
     finally:
         sys.argv = argv
+
+
+def test_error_bands_block_means_keep_only_coarse_error() -> None:
+    """Catches block means taken over the wrong axes (channels mixed, or rows with columns), and a
+    band score that does not separate fine noise (zero-mean inside a block: vanishes at k = 2) from a
+    coarse offset (kept at every k)."""
+    import numpy as np
+
+    eb = load_script("error_bands")
+    img = np.arange(2 * 4 * 6, dtype=np.float64).reshape(2, 4, 6)
+    bm = eb.block_mean(img, 2)
+    assert bm.shape == (2, 2, 3) and bm[1, 1, 2] == img[1, 2:4, 4:6].mean()
+    y = np.ones((3, 8, 8))
+    checker = np.indices((8, 8)).sum(axis=0) % 2 * 2 - 1.0  # +-1, mean 0 in every 2x2 block
+    noisy = y + 0.1 * checker
+    assert eb.band_relmse(noisy, y, 1) > 0 and eb.band_relmse(noisy, y, 2) < 1e-20
+    offset = y * 1.1
+    r = [eb.band_relmse(offset, y, k) for k in (1, 2, 4, 8)]
+    assert np.allclose(r, r[0]) and r[0] > 0
