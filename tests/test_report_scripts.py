@@ -1,7 +1,7 @@
-"""Scripts that read eval reports (scripts/compare_on_valscenes.py, scripts/bright_share_vs_ratio.py,
+"""Scripts that read eval reports, datasets or saved outputs (scripts/compare_on_valscenes.py, scripts/bright_share_vs_ratio.py,
 scripts/ratio_by_lighting.py,
 scripts/results_block_drift.py, scripts/dataset_fingerprint.py,
-scripts/error_bands.py)."""
+scripts/error_bands.py, scripts/two_scale_probe.py)."""
 
 from __future__ import annotations
 
@@ -198,3 +198,25 @@ def test_error_bands_block_means_keep_only_coarse_error() -> None:
     offset = y * 1.1
     r = [eb.band_relmse(offset, y, k) for k in (1, 2, 4, 8)]
     assert np.allclose(r, r[0]) and r[0] > 0
+
+
+def test_two_scale_probe_merges_blocks_and_keeps_a_consistent_image() -> None:
+    """Catches a 2x2 merge that mixes pixels of other blocks or leaves sub-pixel positions in the
+    small pixel's frame (the half-resolution pass would then see samples at the wrong places), and a
+    band swap that changes an image whose half-resolution version is its own 2x2 mean."""
+    import numpy as np
+    import torch
+
+    ts = load_script("two_scale_probe")
+    rad = torch.arange(16.0).view(1, 1, 1, 4, 4)
+    sub = torch.stack([torch.full((4, 4), 0.25), torch.full((4, 4), 0.75)]).view(1, 1, 2, 4, 4)
+    m = ts.merge_2x2({"radiance": rad, "subpixel": sub, "scene_features": torch.zeros(1, 5)})
+    assert m["radiance"].shape == (1, 4, 1, 2, 2)
+    assert m["radiance"][0, :, 0, 0, 0].tolist() == [0.0, 1.0, 4.0, 5.0]
+    assert m["radiance"][0, :, 0, 1, 1].tolist() == [10.0, 11.0, 14.0, 15.0]
+    assert m["subpixel"][0, :, :, 0, 0].tolist() == [[0.125, 0.375], [0.625, 0.375], [0.125, 0.875], [0.625, 0.875]]
+    assert torch.equal(m["scene_features"], torch.zeros(1, 5))
+    full = np.random.default_rng(0).random((3, 8, 8)).astype(np.float32)
+    half = full.reshape(3, 4, 2, 4, 2).mean(axis=(2, 4))
+    assert np.abs(ts.two_scale(full, half) - full).max() < 1e-6
+    assert ts.two_scale(full, half + 0.5).mean() > full.mean() + 0.45  # the coarse band is the half one's
