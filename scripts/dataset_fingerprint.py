@@ -17,8 +17,8 @@ from pathlib import Path
 
 
 def fingerprints(root: Path) -> dict[str, str]:
-    """``"<root name>/<image path>" -> "samples=<crc> noisy=<crc> reference=<crc>"`` for every image
-    folder under ``root`` that has a meta.json with checksums."""
+    """``"<root name>/<image path>" -> "samples=<crc> samples_header=<crc> noisy=<crc> reference=<crc>"``
+    for every image folder under ``root`` that has a meta.json with checksums."""
     out: dict[str, str] = {}
     for meta in sorted(root.rglob("meta.json")):
         if any(part.startswith(".") for part in meta.relative_to(root).parts):

@@ -4,8 +4,9 @@ on another CPU, or after a change that should not alter the figures.
     python scripts/results_block_drift.py reports/X/results.json --section valscenes
 
 Per method and spp: the mean relMSE and PSNR of the block and of the report, and over the images
-of the block's "relMSE per image" tables the median and largest |new / old - 1|. The block prints 4
-significant digits, so differences under ~5e-4 relative are its rounding. Then, from the report
+of the block's "relMSE per image" tables the median and largest |new / old - 1|; per image, the
+largest for the noisy input and for any other method. The block prints 4 significant digits, so
+differences under ~5e-4 relative are its rounding. Then, from the report
 alone, every (method, spp, image) where a model is worse than the noisy input in relMSE or PSNR
 (issue 19's first done-when item).
 """
@@ -91,6 +92,17 @@ def main() -> None:
         print(f"{method:18s} {spp:3d} | {rel0:.4g} -> {rel1:.4g} ({rel1 / rel0 - 1:+.2%}) | {psnr0:.2f} -> {psnr1:.2f} "
               f"({psnr1 - psnr0:+.3f} dB) | {np.median(list(dev.values())) if dev else float('nan'):.2e}, "
               f"{dev.get(worst, float('nan')):.2e} ({worst})")
+    # Per image, over every spp: the noisy input's largest drift (did the inputs come back?) and
+    # the largest of any other method's.
+    by_image: dict[str, list[float]] = collections.defaultdict(lambda: [0.0, 0.0])
+    for (method, spp, im), old in per.items():
+        if (method, spp, im) in new:
+            d = abs(new[(method, spp, im)][0] / old - 1)
+            slot = by_image[im]
+            slot[method != "noisy"] = max(slot[method != "noisy"], d)
+    print("\nper image, largest |new/old-1| of relMSE: noisy input, any other method")
+    for im, (dn, dm) in sorted(by_image.items()):
+        print(f"  {im:16s} {dn:.2e}  {dm:.2e}")
     worse = collections.defaultdict(list)
     for (method, spp, im), (rel, psnr) in sorted(new.items()):
         if method in NOT_MODELS or ("noisy", spp, im) not in new:

@@ -31,6 +31,11 @@ from mcdenoise.io.exr import write_exr
 from mcdenoise.models.weights import load_denoiser
 
 
+def scene_of(image_id: str) -> str:
+    """The scene of an image id (``scene_inputs/kitchen_128x128_d8_spp16_seed7`` -> ``kitchen``)."""
+    return image_id.rsplit("/", 1)[-1].split("_")[0]
+
+
 def merge_2x2(batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
     """A per-sample batch ``(B, S, C, H, W)`` as the half-resolution image whose pixel holds the
     samples of a 2x2 block: ``(B, 4S, C, H/2, W/2)``; sub-pixel positions ``(x, y)`` become
@@ -94,10 +99,10 @@ def main() -> None:
         v = np.array([x[1:] for x in r])
         print(f"{spp:2d} spp, {len(r)} images: {a.model} relMSE {v[:, 0].mean():.5f} PSNR {v[:, 1].mean():.4f} | "
               f"two-scale relMSE {v[:, 2].mean():.5f} PSNR {v[:, 3].mean():.4f} | ratio {v[:, 2].mean() / v[:, 0].mean():.4f}")
-        scenes = sorted({i.rsplit("/", 1)[-1].split("_")[0] for i, *_ in r})
+        scenes = sorted({scene_of(i) for i, *_ in r})
         per = []
         for s in scenes:
-            sv = np.array([x[1:] for x in r if x[0].rsplit("/", 1)[-1].split("_")[0] == s])
+            sv = np.array([x[1:] for x in r if scene_of(x[0]) == s])
             per.append(f"{s} {sv[:, 2].mean() / sv[:, 0].mean():.3f}")
         print("    two-scale / full, mean relMSE per scene: " + " ".join(per))
 

@@ -1,8 +1,8 @@
 """A load-independent emitter order for scenes whose emitter list Mitsuba shuffles.
 
 Mitsuba 3.9 lists the emitters attached to *mesh* shapes (``rectangle``, ``cube``, ``obj``/``ply``
-meshes) in an order that changes from one load of a scene to the next (6 orders in 12 loads of a
-scene with 6 rectangle lights, ``parallel=False`` included). ``Scene.sample_emitter_direction``
+meshes) in an order that changes from one load of a scene to the next, ``parallel=False`` included
+(``scripts/emitter_order_probe.py`` counts them). ``Scene.sample_emitter_direction``
 picks the emitter by index in that list, so the same seed gave other pixels after every load: a
 third-party scene's eval inputs (the kitchen's window and lamps) could not be rendered twice alike.
 
