@@ -12,4 +12,4 @@ __all__ = ["load_builtin_models"]
 
 def load_builtin_models() -> None:
     """Import (and so register) every built-in model; cheap after the first call."""
-    from mcdenoise.models import combine, kpcn, layer, sbmc, wskp, wskp_mr  # noqa: F401  (registration side effects)
+    from mcdenoise.models import combine, kpcn, layer, refine, sbmc, wskp, wskp_mr  # noqa: F401  (registration side effects)

@@ -1,0 +1,206 @@
+"""A learned second stage over a frozen model's output (campaign 29, issue 19).
+
+A registered model (the ``base``, in practice the shipped per-sample ``layer-medium``) denoises
+first and is frozen. A small U-Net then reads pixel features (the base output, the noisy mean,
+albedo, normal, how far the noisy mean strays from the base relative to its noise) and predicts
+per pixel one softmax over ``k x k`` taps of a few candidate images: the base output, the noisy
+mean clamped to the base's 3x3 maximum, and the base output blurred at coarser scales with its
+taps dilated by the same factor. The output is the weighted sum
+
+    out(p) = sum_c sum_t w_{c,t}(p) * C_c(p + d_c * t),   w >= 0,  sum w = 1
+
+so a constant image stays constant and no output exceeds the largest candidate value its taps
+reach. It starts as (nearly) the identity on the base (centre-tap bias), so training moves away
+from the base only where the data says so. It is the combiner's idea (:mod:`mcdenoise.models.combine`;
+Back et al. 2020 combine a noisy and a denoised image with a kernel network) with our own model in
+OIDN's place, and it adds the coarse candidates of a multi-scale kernel (Vogels et al. 2018 filter
+at several scales and blend them per pixel): campaign 28 found layer-medium's 4-spp deficit against
+OIDN at the pixel scale in some scenes and at 8-32-pixel blocks in others.
+
+Emitter pixels (albedo above 1, Cycles' convention) pass through, and the candidates are filled
+there from their neighbours first, as every kernel model here does, so a light never spreads
+into the surfaces its taps reach.
+"""
+
+from __future__ import annotations
+
+from contextlib import nullcontext
+
+import torch
+import torch.nn.functional as F
+
+from mcdenoise.models.base import Denoiser, build_from_fields, register_model
+from mcdenoise.models.blocks import UNet
+from mcdenoise.models.combine import LOGIT_BOUND, max3x3
+from mcdenoise.models.emitters import _tracing, as_reflectance, batch_emitter_mask, fill_from_neighbours, pass_through
+from mcdenoise.models.exposure import batch_exposure, check_key
+from mcdenoise.models.refine_config import RefineConfig
+
+__all__ = ["RefineConfig", "Refine", "apply_taps", "blur", "refine_features", "N_FEATURES"]
+
+#: Log colour of the base output and of the noisy mean, albedo, normal, the noisy mean's
+#: relative deviation from the base and its relative variance.
+N_FEATURES = 3 + 3 + 3 + 3 + 1 + 1
+#: Floor of luminance denominators at the autoexposure scale (key 0.18: a mid-grey image's
+#: luminance is 0.18, so 1e-3 is about 7.5 stops below it).
+EPS = 1e-3
+
+
+def _lum(x: torch.Tensor) -> torch.Tensor:
+    return 0.2126 * x[:, 0:1] + 0.7152 * x[:, 1:2] + 0.0722 * x[:, 2:3]
+
+
+def blur(x: torch.Tensor, f: int) -> torch.Tensor:
+    """``(B, C, H, W)`` -> same: the mean over each pixel's ``(2f-1) x (2f-1)`` box, the edge
+    repeated. Stride 1, so it commutes with shifts (tiles agree with the whole image); with taps
+    ``f`` apart, neighbouring boxes overlap by a pixel, so no pixel is skipped."""
+    if f <= 1:
+        return x
+    r = f - 1
+    return F.avg_pool2d(F.pad(x, (r, r, r, r), mode="replicate"), 2 * r + 1, stride=1)
+
+
+def apply_taps(candidates: list[torch.Tensor], dilations: list[int], weights: torch.Tensor, k: int) -> torch.Tensor:
+    """``sum_c sum_t weights[:, c*k*k + t] * candidates[c](p + dilations[c] * t)`` -> (B, 3, H, W).
+
+    ``weights`` (B, len(candidates)*k*k, H, W), normalised by the caller, taps in row-major order
+    over ``t in [-k//2, k//2]^2``; candidates are replicate-padded, so border taps repeat the edge.
+    """
+    b, _, h, w = candidates[0].shape
+    r = k // 2
+    out = torch.zeros_like(candidates[0])
+    for c, (img, d) in enumerate(zip(candidates, dilations)):
+        p = r * d
+        padded = F.pad(img, (p, p, p, p), mode="replicate") if p else img
+        taps = F.unfold(padded, k, dilation=d).view(b, img.shape[1], k * k, h, w)
+        out = out + (taps * weights[:, c * k * k : (c + 1) * k * k].unsqueeze(1)).sum(dim=2)
+    return out
+
+
+def refine_features(base: torch.Tensor, noisy: torch.Tensor, var_mean: torch.Tensor, albedo: torch.Tensor,
+                    normal: torch.Tensor, scale: torch.Tensor | None) -> torch.Tensor:
+    """``(B, N_FEATURES, H, W)`` inputs of the head, exposure-normalised: ``base``, ``noisy`` (B, 3,
+    H, W) radiance, ``var_mean`` (B, 3, H, W) the variance of the noisy mean, ``albedo`` and
+    ``normal`` (B, 3, H, W) pixel means, ``scale`` (B,) the autoexposure scale (None: 1)."""
+    if scale is not None:
+        s = scale.to(base.dtype).view(-1, 1, 1, 1)
+        base, noisy, var_mean = base * s, noisy * s, var_mean * s * s
+    base, noisy = base.clamp_min(0), noisy.clamp_min(0)
+    lb, ln = _lum(base), _lum(noisy)
+    # Noise or detail? How far the noisy mean is from the base, relative to the base and to its noise.
+    deviation = torch.log1p((ln - lb).abs() / (lb + EPS))
+    rel_var = torch.log1p(_lum(var_mean.clamp_min(0)) / (lb * lb + EPS * EPS))
+    return torch.cat([torch.log1p(base), torch.log1p(noisy), albedo.clamp(0, 1), normal, deviation, rel_var], dim=1)
+
+
+class Refine(Denoiser):
+    """A frozen base model, then per-pixel softmax taps over its output (module docstring)."""
+
+    def __init__(self, config: RefineConfig) -> None:
+        super().__init__(config)
+        k = config.kernel
+        if k < 1 or k % 2 == 0:
+            raise ValueError(f"refine: kernel must be odd and >= 1, got {k}")
+        if any(int(f) < 2 for f in config.coarse):
+            raise ValueError(f"refine: coarse factors must be >= 2, got {tuple(config.coarse)}")
+        if not 0 <= config.start_logit < LOGIT_BOUND:
+            raise ValueError(f"refine: start_logit must be in [0, {LOGIT_BOUND}), got {config.start_logit}")
+        check_key("refine", config.autoexposure)
+        name, _, preset = config.base.partition(":")
+        if name == "refine":
+            raise ValueError("refine: the base cannot be another refine stage")
+        self.base = build_from_fields(name, preset or "small", config.base_config).requires_grad_(False).eval()
+        self.input_kind = self.base.input_kind  # type: ignore[misc]  (per instance: the base's)
+        self.dilations = [1] + ([1] if config.noisy else []) + [int(f) for f in config.coarse]
+        k2 = k * k
+        w = config.width
+        self.net = UNet(N_FEATURES, len(self.dilations) * k2, [(w, w)] * config.levels, (w, w), [(w, w)] * config.levels)
+        with torch.no_grad():  # (nearly) the identity on the base output: its centre tap
+            self.net.final.bias.zero_()
+            self.net.final.weight.mul_(0.1)
+            s = config.start_logit
+            self.net.final.bias[k2 // 2] = s / (1 - s / LOGIT_BOUND)  # the raw value that soft-clips to s
+
+    def required_channels(self) -> list[str]:
+        own = list(self.base.required_channels())
+        extra = ["radiance", "albedo", "normal"] + (["radiance_variance"] if self.input_kind == "pixels" else [])
+        return own + [c for c in extra if c not in own]
+
+    def train(self, mode: bool = True) -> "Refine":
+        super().train(mode)
+        self.base.eval()  # frozen: never in training mode
+        return self
+
+    @property
+    def autoexposure(self) -> float | None:
+        """The base's key when it has one (tiled inference then gives both one scale), else ours."""
+        key = self.base.autoexposure
+        return key if key is not None else self.config.autoexposure
+
+    def exposure_colour(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
+        return self.base.exposure_colour(batch)
+
+    def conv_trunks(self) -> list[str]:
+        return ["net"] + [f"base.{n}" for n in self.base.conv_trunks()]
+
+    def pixel_inputs(self, batch: dict[str, torch.Tensor]) -> tuple[torch.Tensor, ...]:
+        """``(noisy, var_mean, albedo, normal)``, each (B, 3, H, W): the pixel means of the input and
+        the variance of the radiance mean (0 with one sample)."""
+        rad = batch["radiance"]
+        if rad.dim() == 5:
+            n = rad.shape[1]
+            noisy = rad.mean(dim=1)
+            var = rad.var(dim=1) / n if n > 1 else torch.zeros_like(noisy)
+            albedo, normal = batch["albedo"].mean(dim=1), batch["normal"].mean(dim=1)
+        else:
+            noisy, var = rad, batch["radiance_variance"]
+            albedo, normal = batch["albedo"], batch["normal"]
+        return noisy, var, as_reflectance(albedo), normal
+
+    def candidates(self, base: torch.Tensor, noisy: torch.Tensor) -> list[torch.Tensor]:
+        """The candidate images, in the order of :attr:`dilations`: the base output, the clamped
+        noisy mean (``noisy``), then the base blurred at each ``coarse`` factor."""
+        out = [base]
+        if self.config.noisy:
+            out.append(torch.minimum(noisy, self.config.noisy_clamp * max3x3(base.clamp_min(0))))
+        return out + [blur(base, int(f)) for f in self.config.coarse]
+
+    def weights(self, feats: torch.Tensor) -> torch.Tensor:
+        """(B, n_candidates * k * k, H, W) softmax weights from the head's features."""
+        raw = self.net(feats).to(feats.dtype)
+        return torch.softmax(raw / (1 + raw.abs() / LOGIT_BOUND), dim=1)
+
+    def forward(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
+        # The base is frozen: training needs no graph through it. At inference gradients with
+        # respect to the inputs pass (the receptive-field probe of tiled inference follows them).
+        with torch.no_grad() if self.training else nullcontext():
+            base = self.base(batch)
+        noisy, var, albedo, normal = self.pixel_inputs(batch)
+        base = base.to(noisy.dtype)
+        mask = batch_emitter_mask(batch, self.required_channels())
+        if mask is not None and not _tracing() and bool(mask.any()):
+            # Lights out of every candidate the taps read; they come back by pass_through.
+            base, noisy, var = (fill_from_neighbours(t, mask) for t in (base, noisy, var))
+        s = batch_exposure(batch, self.exposure_colour(batch), self.autoexposure) if self.autoexposure else None
+        w = self.weights(refine_features(base, noisy, var, albedo, normal, s))
+        out = apply_taps(self.candidates(base, noisy), self.dilations, w, self.config.kernel)
+        return pass_through(out, batch["radiance"], mask)
+
+
+_PAPER = ("Back et al. 2020 (a kernel network combining a noisy and a denoised image), Vogels et al. 2018 "
+          "(kernels at several scales blended per pixel): a second stage over our own per-sample model")
+
+
+def _layer_medium() -> RefineConfig:
+    return RefineConfig(base="layer:medium")
+
+
+register_model(
+    "refine",
+    config_cls=RefineConfig,
+    presets={"small": lambda: RefineConfig(), "paper": lambda: RefineConfig(width=32, levels=3),
+             "layer_medium": _layer_medium},
+    paper=_PAPER,
+    description="a frozen base model (layer-medium), then per-pixel softmax 5x5 taps over its output, the clamped "
+                "noisy mean and the output blurred at 2x and 4x",
+)(Refine)

@@ -1,0 +1,50 @@
+"""Configuration of the second stage over a frozen sample model (:mod:`mcdenoise.models.refine`),
+each field with the measurement that motivated it."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+__all__ = ["RefineConfig"]
+
+
+@dataclass
+class RefineConfig:
+    """Sizes and candidates of the second stage.
+
+    Attributes:
+        base: ``"name:preset"`` of the registered model whose output the stage refines. It is part
+            of the stage (its weights are saved in the stage's file) and frozen: training moves the
+            head only.
+        base_config: the base's configuration fields over its preset (a shipped card's
+            ``model_config``), so the stage's file alone rebuilds it.
+        width: channels of the head U-Net's levels.
+        levels: head U-Net levels (pooling steps).
+        kernel: taps per candidate per axis (odd).
+        start_logit: initial logit of the base output's centre tap over every other tap; with
+            ``kernel`` 5 and four candidates, 10 puts 99.5% of the weight there (the stage starts as
+            the base).
+    """
+
+    base: str = "layer:small"
+    base_config: dict | None = None
+    width: int = 16
+    levels: int = 2
+    kernel: int = 5
+    start_logit: float = 10.0
+    coarse: tuple[int, ...] = (2, 4)
+    """Box-downsampling factors of the coarse candidates: the base output averaged over f x f
+    blocks, bilinearly back to full size, its taps dilated by f (a 5x5 tap grid then spans 4f+1
+    pixels). Why: campaign 28's error bands put layer-medium's 4-spp deficit against OIDN high in the
+    dark rooms lit by small sources at 8-32-pixel blocks (2.4-3.1x OIDN at 32), wider than its 17x17
+    kernels, while running the same network on 2x2-merged samples (no learning) was worse at 2-8
+    pixels: which scale to trust where must be learned per pixel."""
+    noisy: bool = True
+    """Add the noisy mean as a candidate, clamped to ``noisy_clamp`` times the base output's 3x3
+    maximum. Why: in product shots layer-medium's deficit is fine-scale (the ratio to OIDN falls
+    with the block size, campaign 28), detail the base smoothed away; the clamp keeps a firefly of
+    the few samples out (the combiner's measurement, :class:`~mcdenoise.models.combine_config.CombineConfig`)."""
+    noisy_clamp: float = 1.0
+    autoexposure: float | None = 0.18
+    """Key of the features' exposure scale when the base has none (the base's key otherwise, so that
+    tiled inference gives both one scale)."""

@@ -1,0 +1,147 @@
+"""The second stage over a frozen model (``refine``, campaign 29): its op against a reference,
+its guarantees, the frozen base and the start from shipped weights."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+
+from mcdenoise.models import build_model, synthetic_batch
+from mcdenoise.models.refine import apply_taps, blur
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _reference_taps(candidates: list[torch.Tensor], dilations: list[int], weights: torch.Tensor, k: int) -> torch.Tensor:
+    """The sum written out: one shifted, edge-clamped copy of each candidate per tap."""
+    b, _, h, w = candidates[0].shape
+    r = k // 2
+    out = torch.zeros_like(candidates[0])
+    ys = torch.arange(h).view(h, 1)
+    xs = torch.arange(w).view(1, w)
+    for c, (img, d) in enumerate(zip(candidates, dilations)):
+        for t, (dy, dx) in enumerate((dy, dx) for dy in range(-r, r + 1) for dx in range(-r, r + 1)):
+            yy = (ys + dy * d).clamp(0, h - 1).expand(h, w)
+            xx = (xs + dx * d).clamp(0, w - 1).expand(h, w)
+            out = out + img[:, :, yy, xx] * weights[:, c * k * k + t].unsqueeze(1)
+    return out
+
+
+def _random_weights(n: int, k: int, h: int, w: int, seed: int) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    return torch.softmax(torch.randn(1, n * k * k, h, w, generator=g, dtype=torch.float64) * 2, dim=1)
+
+
+def test_apply_taps_equals_the_written_out_sum_float64() -> None:
+    """Catches a tap order that differs from the weights' (unfold's row-major order), a dilation
+    that is not applied to a candidate or applied to the wrong one, and zero padding at borders
+    (the edge must repeat: a dark rim would pull border pixels down)."""
+    g = torch.Generator().manual_seed(0)
+    cands = [torch.rand(1, 3, 13, 17, generator=g, dtype=torch.float64) for _ in range(3)]
+    dil = [1, 2, 4]
+    w = _random_weights(3, 5, 13, 17, 1)
+    torch.testing.assert_close(apply_taps(cands, dil, w, 5), _reference_taps(cands, dil, w, 5), rtol=1e-12, atol=1e-12)
+
+
+def test_apply_taps_gradcheck() -> None:
+    """Catches a backward that differs from the forward (unfold's adjoint through the dilation)."""
+    g = torch.Generator().manual_seed(2)
+    cands = [torch.rand(1, 3, 6, 7, generator=g, dtype=torch.float64, requires_grad=True) for _ in range(2)]
+    w = _random_weights(2, 3, 6, 7, 3).requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda a, b, ww: apply_taps([a, b], [1, 2], ww, 3), (*cands, w))
+
+
+def test_constant_image_stays_constant() -> None:
+    """Catches weights that are not a partition of unity, or a blur that is not normalised at the
+    border (a constant image must come out the same constant, whatever the weights)."""
+    c = torch.full((2, 3, 11, 9), 0.37, dtype=torch.float64)
+    cands = [c, c.clone(), blur(c, 2), blur(c, 4)]
+    w = _random_weights(4, 5, 11, 9, 4).expand(2, -1, -1, -1)
+    torch.testing.assert_close(apply_taps(cands, [1, 1, 2, 4], w, 5), c, rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(blur(c, 4), c, rtol=1e-12, atol=1e-12)
+
+
+def test_blur_commutes_with_shifts_away_from_the_border() -> None:
+    """Catches a strided (block) coarse candidate: its output would depend on where a tile starts,
+    so tiled and whole-image denoising would disagree."""
+    x = torch.rand(1, 3, 24, 24, dtype=torch.float64, generator=torch.Generator().manual_seed(5))
+    shifted = torch.roll(x, shifts=(3, 5), dims=(2, 3))
+    a = torch.roll(blur(x, 4), shifts=(3, 5), dims=(2, 3))[..., 10:18, 10:18]
+    b = blur(shifted, 4)[..., 10:18, 10:18]
+    torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-12)
+
+
+def _model(seed: int = 0, **over: object) -> torch.nn.Module:
+    torch.manual_seed(seed)
+    return build_model("refine", "small", **over)
+
+
+def test_starts_as_the_base() -> None:
+    """Catches the identity start on the wrong tap or candidate (the centre tap of the base
+    output): a fresh stage would then blur or brighten the base's output before any training."""
+    model = _model().eval()
+    batch = synthetic_batch(model, spp=4, height=24, width=20, generator=torch.Generator().manual_seed(6))
+    with torch.no_grad():
+        out, base = model(batch), model.base(batch)
+    err = ((out - base).abs().amax() / base.abs().amax()).item()
+    assert err < 0.02, f"a fresh refine stage moves its base's output by {err:.3f} of its maximum"
+
+
+def test_base_is_frozen_and_every_head_parameter_learns() -> None:
+    """Catches a base that trains (its gradients or a training-mode switch) and a head parameter
+    cut off from the loss."""
+    model = _model().train()
+    assert not model.base.training
+    batch = synthetic_batch(model, spp=3, height=16, width=16, generator=torch.Generator().manual_seed(7))
+    model(batch).square().mean().backward()
+    assert all(p.grad is None and not p.requires_grad for p in model.base.parameters())
+    missing = [n for n, p in model.net.named_parameters() if p.grad is None or not bool(p.grad.abs().sum() > 0)]
+    assert not missing, f"head parameters without a gradient: {missing[:3]}"
+
+
+def test_noisy_candidate_is_clamped_to_the_base_neighbourhood() -> None:
+    """Catches a firefly of the few samples reaching the output through the noisy candidate: it may
+    not exceed the base output's 3x3 maximum times the clamp."""
+    model = _model().eval()
+    base = torch.rand(1, 3, 9, 9, dtype=torch.float64)
+    noisy = base.clone()
+    noisy[..., 4, 4] = 1e5
+    cands = model.candidates(base, noisy)
+    hi = F.max_pool2d(F.pad(base, (1, 1, 1, 1), mode="replicate"), 3, 1)
+    assert (cands[1] <= hi * model.config.noisy_clamp + 1e-12).all()
+
+
+def test_exposure_equivariant() -> None:
+    """Catches features that are not exposure-normalised (log1p of raw radiance): the same picture
+    ten times brighter must come out ten times brighter, filtered the same way."""
+    model = _model(base_config={"autoexposure": 0.18}).eval()
+    with torch.no_grad():
+        for p in model.net.parameters():
+            p.normal_(0, 0.3)  # away from the identity start, so the head's choices matter
+    batch = synthetic_batch(model, spp=4, height=16, width=16, generator=torch.Generator().manual_seed(8))
+    bright = dict(batch)
+    for name in ("radiance", "specular"):
+        bright[name] = batch[name] * 10
+    with torch.no_grad():
+        a, b = model(batch), model(bright)
+    torch.testing.assert_close(b, a * 10, rtol=2e-4, atol=1e-5)
+
+
+def test_init_script_puts_the_shipped_base_in(tmp_path: Path) -> None:
+    """Catches a start file whose base is not the shipped weights (a random base, or the preset's
+    configuration instead of the card's): its base output must equal the shipped model's."""
+    from mcdenoise.models.weights import load_denoiser
+
+    dst = tmp_path / "init.safetensors"
+    subprocess.run([sys.executable, str(ROOT / "scripts" / "refine_init.py"), "layer-small", str(dst), "--preset", "small"],
+                   check=True, capture_output=True, text=True, cwd=ROOT)
+    model, info = load_denoiser(dst)
+    shipped, _ = load_denoiser("layer-small")
+    assert info["name"] == "refine"
+    batch = synthetic_batch(shipped, spp=4, height=16, width=16, generator=torch.Generator().manual_seed(9))
+    with torch.no_grad():
+        torch.testing.assert_close(model.base(batch), shipped(batch), rtol=0, atol=0)
