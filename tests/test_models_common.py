@@ -110,7 +110,8 @@ def test_every_parameter_and_input_channel_gets_gradient(name: str) -> None:
     partitioner that ignores its context (its context projection gets no gradient), a kernel
     generator fed zeros instead of the layer embedding, coarse levels whose output is dropped,
     U-Net skip connections zeroed or scene features zeroed (the weight columns that read them get
-    no gradient). Float64, so that no gradient underflows to 0 by accident.
+    no gradient). Float64, so that no gradient underflows to 0 by accident. A frozen sub-model
+    (refine's base: ``requires_grad`` off by design) is exempt, and must get no gradient at all.
     """
     torch.manual_seed(0)
     model = build_model(name, "small").train().double()
@@ -124,12 +125,14 @@ def test_every_parameter_and_input_channel_gets_gradient(name: str) -> None:
             h.remove()
     # Random weights per output value, so that no gradient cancels by symmetry.
     (out * torch.rand(out.shape, generator=g, dtype=torch.float64)).sum().backward()
-    dead = [n for n, p in model.named_parameters() if p.grad is None or not p.grad.ne(0).any()]
+    dead = [n for n, p in model.named_parameters() if p.requires_grad and (p.grad is None or not p.grad.ne(0).any())]
     assert not dead, f"{name}: parameters without gradient: {dead}"
+    leaked = [n for n, p in model.named_parameters() if not p.requires_grad and p.grad is not None]
+    assert not leaked, f"{name}: frozen parameters with a gradient: {leaked}"
     modules = dict(model.named_modules())
     cut = []
     for mname, mod in modules.items():
-        if not isinstance(mod, (torch.nn.Conv2d, torch.nn.Linear)) or mname not in live:
+        if not isinstance(mod, (torch.nn.Conv2d, torch.nn.Linear)) or mname not in live or not mod.weight.requires_grad:
             continue
         grad = mod.weight.grad
         per_in = grad.ne(0).transpose(0, 1).reshape(grad.shape[1], -1).any(dim=1)

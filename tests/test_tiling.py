@@ -24,7 +24,7 @@ PINNED = {
     "dpcn": (9, 1), "kpcn": (9, 1), "kpcn_single": (9, 1),
     "layer": (19, 4), "layer_weighted": (19, 4), "layer_optimized": (39, 8),
     "pixel_gather": (31, 4), "sbmc_gather": (31, 4), "pixel_splat": (35, 4), "sbmc": (35, 4),
-    "wskp": (7, 1), "wskp_mr": (22, 4), "combine": (26, 4),
+    "wskp": (7, 1), "wskp_mr": (22, 4), "combine": (26, 4), "refine": (43, 4),
 }
 
 H, W = 29, 35  # odd sizes: the last tiles are partial and pooling pads at the border

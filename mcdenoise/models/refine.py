@@ -170,7 +170,9 @@ class Refine(Denoiser):
         raw = self.net(feats).to(feats.dtype)
         return torch.softmax(raw / (1 + raw.abs() / LOGIT_BOUND), dim=1)
 
-    def forward(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
+    def _stage_inputs(self, batch: dict[str, torch.Tensor]) -> tuple[torch.Tensor, ...]:
+        """``(features, base, noisy, emitter mask or None)``: the head's input (B, N_FEATURES, H, W)
+        and the images its candidates are made of, lights filled from their neighbours."""
         # The base is frozen: training needs no graph through it. At inference gradients with
         # respect to the inputs pass (the receptive-field probe of tiled inference follows them).
         with torch.no_grad() if self.training else nullcontext():
@@ -182,8 +184,15 @@ class Refine(Denoiser):
             # Lights out of every candidate the taps read; they come back by pass_through.
             base, noisy, var = (fill_from_neighbours(t, mask) for t in (base, noisy, var))
         s = batch_exposure(batch, self.exposure_colour(batch), self.autoexposure) if self.autoexposure else None
-        w = self.weights(refine_features(base, noisy, var, albedo, normal, s))
-        out = apply_taps(self.candidates(base, noisy), self.dilations, w, self.config.kernel)
+        return refine_features(base, noisy, var, albedo, normal, s), base, noisy, mask
+
+    def features(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
+        """(B, N_FEATURES, H, W): what the head reads (:func:`refine_features`)."""
+        return self._stage_inputs(batch)[0]
+
+    def forward(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
+        feats, base, noisy, mask = self._stage_inputs(batch)
+        out = apply_taps(self.candidates(base, noisy), self.dilations, self.weights(feats), self.config.kernel)
         return pass_through(out, batch["radiance"], mask)
 
 
