@@ -22,20 +22,11 @@ import argparse
 import json
 
 import torch
-from safetensors import safe_open
 from safetensors.torch import save_file
 
-from mcdenoise.models.weights import load_denoiser, model_from_config, shipped_name
-from reconfigure_weights import apply_sets  # scripts/ is on the path when a script runs
+from mcdenoise.models.weights import load_denoiser, model_from_config
+from reconfigure_weights import apply_sets, read_weights  # scripts/ is on the path when a script runs
 
-
-def _read(spec: str) -> tuple[dict[str, str], dict[str, torch.Tensor]]:
-    from mcdenoise.models.weights import shipped_weights
-
-    named = shipped_name(spec)
-    path = str(shipped_weights(*named).weights) if named else spec
-    with safe_open(path, "pt") as f:
-        return dict(f.metadata() or {}), {k: f.get_tensor(k) for k in f.keys()}
 
 
 def main() -> None:
@@ -47,8 +38,8 @@ def main() -> None:
     ap.add_argument("--set", nargs="+", default=[], metavar="FIELD=VALUE")
     ap.add_argument("--fresh", action="store_true", help="a new weight network (identity start on OIDN)")
     a = ap.parse_args()
-    cmeta, cten = _read(a.combiner)
-    kmeta, kten = _read(a.kernel)
+    cmeta, cten = read_weights(a.combiner)
+    kmeta, kten = read_weights(a.kernel)
     cfg = json.loads(cmeta["model_config"])
     cfg.update(kernel_candidate=f"{kmeta['model']}:{kmeta['preset']}", kernel_candidate_config=json.loads(kmeta["model_config"]))
     cfg = apply_sets(cfg, a.set)

@@ -27,6 +27,16 @@ from safetensors.torch import save_file
 from mcdenoise.models.weights import model_from_config
 
 
+def read_weights(spec: str) -> tuple[dict[str, str], dict]:
+    """``(metadata, tensors)`` of a shipped model name (``layer-medium``) or a .safetensors file."""
+    from mcdenoise.models.weights import shipped_name, shipped_weights
+
+    named = shipped_name(spec)
+    path = str(shipped_weights(*named).weights) if named else spec
+    with safe_open(path, "pt") as f:
+        return dict(f.metadata() or {}), {k: f.get_tensor(k) for k in f.keys()}
+
+
 def apply_sets(cfg: dict, items: list[str]) -> dict:
     """``cfg`` with each ``FIELD=VALUE`` of ``items`` set (VALUE as JSON where it parses, else a string)."""
     for item in items:

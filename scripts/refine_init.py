@@ -12,20 +12,11 @@ import argparse
 import json
 
 import torch
-from safetensors import safe_open
 from safetensors.torch import save_file
 
-from mcdenoise.models.weights import load_denoiser, model_from_config, shipped_name
-from reconfigure_weights import apply_sets  # scripts/ is on the path when a script runs
+from mcdenoise.models.weights import load_denoiser, model_from_config
+from reconfigure_weights import apply_sets, read_weights  # scripts/ is on the path when a script runs
 
-
-def _read(spec: str) -> tuple[dict[str, str], dict[str, torch.Tensor]]:
-    from mcdenoise.models.weights import shipped_weights
-
-    named = shipped_name(spec)
-    path = str(shipped_weights(*named).weights) if named else spec
-    with safe_open(path, "pt") as f:
-        return dict(f.metadata() or {}), {k: f.get_tensor(k) for k in f.keys()}
 
 
 def main() -> None:
@@ -36,7 +27,7 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0, help="seed of the fresh head's initialisation")
     ap.add_argument("--set", nargs="+", default=[], metavar="FIELD=VALUE", help="refine config fields")
     a = ap.parse_args()
-    bmeta, bten = _read(a.base)
+    bmeta, bten = read_weights(a.base)
     cfg = {"base": f"{bmeta['model']}:{bmeta['preset']}", "base_config": json.loads(bmeta["model_config"])}
     cfg = apply_sets(cfg, a.set)
     torch.manual_seed(a.seed)
