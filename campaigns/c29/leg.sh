@@ -1,18 +1,24 @@
 #!/usr/bin/env bash
-# Campaign 29's leg and its checks, in order (campaigns/c29/rules.txt). Run from the repo root.
+# A campaign-29 leg and its checks, in order (campaigns/c29/rules.txt). Run from the repo root.
+# The defaults are leg 1; leg2.sh sets the variables for leg 2.
 set -euo pipefail
-MC=.venv/bin/mcdenoise; PY=.venv/bin/python; L=campaigns/c29/logs
+MC=${MC:-.venv/bin/mcdenoise}; PY=${PY:-.venv/bin/python}; L=campaigns/c29/logs
 HELD=(data/detail_ref data/detail_ref2 data/rich_ref3 data/rich_val)
 RUN=${RUN:-runs/refine_c29}
+INIT=${INIT:-campaigns/c29/refine_init.safetensors}
+DATA=${DATA:-data/plain_ref}
 STEPS=${STEPS:-800}
-[ -f campaigns/c29/refine_init.safetensors ] || $PY scripts/refine_init.py layer-medium campaigns/c29/refine_init.safetensors
-/usr/bin/time -v $MC train --model refine --preset layer_medium --init campaigns/c29/refine_init.safetensors \
-  --data data/plain_ref --val-data data/plain_ref --out "$RUN" --steps "$STEPS" --batch 8 --crop 96 --lr 1e-3 \
+LR=${LR:-1e-3}
+TAG=${TAG:-}                       # log-name prefix
+REPORT=${REPORT:-reports/c29_valscenes}
+[ -e "$INIT" ] || $PY scripts/refine_init.py layer-medium "$INIT" --preset layer_medium
+/usr/bin/time -v $MC train --model refine --preset layer_medium --init "$INIT" \
+  --data "$DATA" --val-data data/plain_ref --out "$RUN" --steps "$STEPS" --batch 8 --crop 96 --lr "$LR" \
   --loss "smape+0.05*relmse_in+0.05*relmse_in_wide" --target reference --spp 4 16 --val-every 200 --val-images 8 \
-  --checkpoint-every 50 --workers 1 --threads 2 --no-progress $( [ -d "$RUN" ] && echo --resume ) > $L/train.log 2>&1
-$PY scripts/consistency_probe.py "${HELD[@]}" --models layer-medium "$RUN" --spp 4 8 16 --ks 4 > $L/probe.log 2>&1
-$PY scripts/brightness_by_quartile.py "${HELD[@]}" --models layer-medium "$RUN" --spp 4 --summary > $L/brightness.log 2>&1
+  --checkpoint-every 50 --workers 1 --threads 2 --no-progress $( [ -d "$RUN" ] && echo --resume ) > $L/${TAG}train.log 2>&1
+$PY scripts/consistency_probe.py "${HELD[@]}" --models layer-medium "$RUN" --spp 4 8 16 --ks 4 > $L/${TAG}probe.log 2>&1
+$PY scripts/brightness_by_quartile.py "${HELD[@]}" --models layer-medium "$RUN" --spp 4 --summary > $L/${TAG}brightness.log 2>&1
 $MC eval --models layer-medium "$RUN" --data data/scene_inputs --spp 4 8 16 --no-classic --oidn high --threads 2 \
-  --no-html --no-progress --out reports/c29_valscenes > $L/eval_valscenes.log 2>&1
-$PY scripts/compare_on_valscenes.py reports/c29_valscenes/results.json layer-medium "$(basename "$RUN")" --per-scene > $L/compare.log 2>&1
-echo "leg done $(date -u +%FT%TZ)" >> $L/train.log
+  --no-html --no-progress --out "$REPORT" > $L/${TAG}eval_valscenes.log 2>&1
+$PY scripts/compare_on_valscenes.py "$REPORT/results.json" layer-medium "$(basename "$RUN")" --per-scene > $L/${TAG}compare.log 2>&1
+echo "${TAG:-leg }done $(date -u +%FT%TZ)" >> $L/${TAG}train.log
