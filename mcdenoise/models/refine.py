@@ -31,7 +31,7 @@ import torch.nn.functional as F
 
 from mcdenoise.models.base import Denoiser, build_from_fields, register_model
 from mcdenoise.models.blocks import UNet
-from mcdenoise.models.combine import LOGIT_BOUND, max3x3
+from mcdenoise.models.combine import LOGIT_BOUND, _lum, max3x3
 from mcdenoise.models.emitters import _tracing, as_reflectance, batch_emitter_mask, fill_from_neighbours, pass_through
 from mcdenoise.models.exposure import batch_exposure, check_key
 from mcdenoise.models.refine_config import RefineConfig
@@ -44,10 +44,6 @@ N_FEATURES = 3 + 3 + 3 + 3 + 1 + 1
 #: Floor of luminance denominators at the autoexposure scale (key 0.18: a mid-grey image's
 #: luminance is 0.18, so 1e-3 is about 7.5 stops below it).
 EPS = 1e-3
-
-
-def _lum(x: torch.Tensor) -> torch.Tensor:
-    return 0.2126 * x[:, 0:1] + 0.7152 * x[:, 1:2] + 0.0722 * x[:, 2:3]
 
 
 def blur(x: torch.Tensor, f: int) -> torch.Tensor:
