@@ -2,13 +2,15 @@
 Per image of an eval report, NEW's relMSE divided by OLD's, grouped by what the generator put in
 the scene (its ``meta.json``): small bright emitters (the rich world's bulbs) or none, and with
 ``--detail`` also indoor with a window, indoor with lamps, or outdoor. Prints per spp and group
-the number of images and the geometric-mean ratio. Images without procedural metadata (renders of
-scene files) form one group, ``scene file``.
+the number of images and the geometric-mean ratio. With ``--metric psnr`` it prints instead the mean
+PSNR difference NEW - OLD in dB and on how many images NEW is worse. Images without procedural
+metadata (renders of scene files) form one group, ``scene file``.
 
 Campaign 26 asked it of OIDN against layer-medium: on our held-out images with small bright
 emitters layer-medium wins, on those without it loses, as on the third-party scenes.
 
     python scripts/ratio_by_lighting.py reports/c24_heldout/results.json oidn-high layer-medium --spp 4 8 16
+    python scripts/ratio_by_lighting.py reports/c29_heldout/results.json layer-medium refine_c29 --metric psnr --all
 """
 from __future__ import annotations
 
@@ -39,6 +41,12 @@ def geo_ratios(pairs: dict[str, list[tuple[float, float]]]) -> dict[str, tuple[i
     return {g: (len(v), math.exp(sum(math.log(n / o) for n, o in v) / len(v))) for g, v in pairs.items() if v}
 
 
+def psnr_differences(pairs: dict[str, list[tuple[float, float]]]) -> dict[str, tuple[int, float, int]]:
+    """group -> [(new, old) PSNR per image] -> group -> (images, mean of new - old in dB, images where
+    new is lower)."""
+    return {g: (len(v), sum(n - o for n, o in v) / len(v), sum(n < o for n, o in v)) for g, v in pairs.items() if v}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("report", type=Path, help="results.json of `mcdenoise eval`")
@@ -47,18 +55,22 @@ def main() -> None:
     ap.add_argument("--spp", type=int, nargs="+", default=[4, 8, 16])
     ap.add_argument("--detail", action="store_true", help="also split by window, lamps and outdoor")
     ap.add_argument("--all", action="store_true", help="also one column over every image of the report")
+    ap.add_argument("--metric", choices=("relmse", "psnr"), default="relmse",
+                    help="relmse: geometric-mean ratio NEW / OLD; psnr: mean difference NEW - OLD (dB)")
     a = ap.parse_args()
     doc = json.loads(a.report.read_text())
     group = {im["id"]: lighting_group(json.loads((Path(im["path"]) / "meta.json").read_text()), a.detail)
              for im in doc["images"]}
     rel: dict[tuple[str, int], dict[str, float]] = collections.defaultdict(dict)
     for r in doc["rows"]:
-        rel[(r["image"], r["spp"])][r["method"]] = r["relmse"]
+        rel[(r["image"], r["spp"])][r["method"]] = r[a.metric]
     for m in (a.old, *a.new):
         if not any(m in v for v in rel.values()):
             ap.error(f"{a.report}: no rows for {m}")
     groups = sorted(set(group.values())) + (["all images"] if a.all else [])
-    print(f"{'spp':>3}  {'method':<20} " + "  ".join(f"{g:>22}" for g in groups))
+    what = "geometric-mean relMSE ratio to" if a.metric == "relmse" else "mean PSNR difference (dB) from"
+    print(f"{what} {a.old}")
+    print(f"{'spp':>3}  {'method':<20} " + "  ".join(f"{g:>26}" for g in groups))
     for spp in a.spp:
         for m in a.new:
             pairs: dict[str, list[tuple[float, float]]] = collections.defaultdict(list)
@@ -67,9 +79,13 @@ def main() -> None:
                     pairs[group[i]].append((v[m], v[a.old]))
                     if a.all:
                         pairs["all images"].append((v[m], v[a.old]))
-            res = geo_ratios(pairs)
-            cells = [f"{res[g][1]:.4f} (n={res[g][0]})" if g in res else "-" for g in groups]
-            print(f"{spp:>3}  {m[:20]:<20} " + "  ".join(f"{c:>22}" for c in cells))
+            if a.metric == "relmse":
+                res = geo_ratios(pairs)
+                cells = [f"{res[g][1]:.4f} (n={res[g][0]})" if g in res else "-" for g in groups]
+            else:
+                dif = psnr_differences(pairs)
+                cells = [f"{dif[g][1]:+.4f} dB ({dif[g][2]}/{dif[g][0]} lower)" if g in dif else "-" for g in groups]
+            print(f"{spp:>3}  {m[:20]:<20} " + "  ".join(f"{c:>26}" for c in cells))
 
 
 if __name__ == "__main__":

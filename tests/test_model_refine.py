@@ -7,11 +7,13 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
 import torch
 import torch.nn.functional as F
 
 from mcdenoise.models import build_model, synthetic_batch
-from mcdenoise.models.refine import apply_taps, blur
+from mcdenoise.models.combine import apply_weights
+from mcdenoise.models.refine import GLOW_RADII, NEAR_RADII, blur, context_features, power_mean
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -36,7 +38,7 @@ def _random_weights(n: int, k: int, h: int, w: int, seed: int) -> torch.Tensor:
     return torch.softmax(torch.randn(1, n * k * k, h, w, generator=g, dtype=torch.float64) * 2, dim=1)
 
 
-def test_apply_taps_equals_the_written_out_sum_float64() -> None:
+def test_dilated_taps_equals_the_written_out_sum_float64() -> None:
     """Catches a tap order that differs from the weights' (unfold's row-major order), a dilation
     that is not applied to a candidate or applied to the wrong one, and zero padding at borders
     (the edge must repeat: a dark rim would pull border pixels down)."""
@@ -44,15 +46,15 @@ def test_apply_taps_equals_the_written_out_sum_float64() -> None:
     cands = [torch.rand(1, 3, 13, 17, generator=g, dtype=torch.float64) for _ in range(3)]
     dil = [1, 2, 4]
     w = _random_weights(3, 5, 13, 17, 1)
-    torch.testing.assert_close(apply_taps(cands, dil, w, 5), _reference_taps(cands, dil, w, 5), rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(apply_weights(cands, w, 5, dil), _reference_taps(cands, dil, w, 5), rtol=1e-12, atol=1e-12)
 
 
-def test_apply_taps_gradcheck() -> None:
+def test_dilated_taps_gradcheck() -> None:
     """Catches a backward that differs from the forward (unfold's adjoint through the dilation)."""
     g = torch.Generator().manual_seed(2)
     cands = [torch.rand(1, 3, 6, 7, generator=g, dtype=torch.float64, requires_grad=True) for _ in range(2)]
     w = _random_weights(2, 3, 6, 7, 3).requires_grad_(True)
-    assert torch.autograd.gradcheck(lambda a, b, ww: apply_taps([a, b], [1, 2], ww, 3), (*cands, w))
+    assert torch.autograd.gradcheck(lambda a, b, ww: apply_weights([a, b], ww, 3, [1, 2]), (*cands, w))
 
 
 def test_constant_image_stays_constant() -> None:
@@ -61,7 +63,7 @@ def test_constant_image_stays_constant() -> None:
     c = torch.full((2, 3, 11, 9), 0.37, dtype=torch.float64)
     cands = [c, c.clone(), blur(c, 2), blur(c, 4)]
     w = _random_weights(4, 5, 11, 9, 4).expand(2, -1, -1, -1)
-    torch.testing.assert_close(apply_taps(cands, [1, 1, 2, 4], w, 5), c, rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(apply_weights(cands, w, 5, [1, 1, 2, 4]), c, rtol=1e-12, atol=1e-12)
     torch.testing.assert_close(blur(c, 4), c, rtol=1e-12, atol=1e-12)
 
 
@@ -115,10 +117,12 @@ def test_noisy_candidate_is_clamped_to_the_base_neighbourhood() -> None:
     assert (cands[1] <= hi * model.config.noisy_clamp + 1e-12).all()
 
 
-def test_exposure_equivariant() -> None:
-    """Catches features that are not exposure-normalised (log1p of raw radiance): the same picture
-    ten times brighter must come out ten times brighter, filtered the same way."""
-    model = _model(base_config={"autoexposure": 0.18}).eval()
+@pytest.mark.parametrize("context", [False, True])
+def test_exposure_equivariant(context: bool) -> None:
+    """Catches features that are not exposure-normalised (log1p of raw radiance; with ``context``,
+    context features taken before the exposure scale): the same picture ten times brighter must
+    come out ten times brighter, filtered the same way."""
+    model = _model(base_config={"autoexposure": 0.18}, context=context).eval()
     with torch.no_grad():
         for p in model.net.parameters():
             p.normal_(0, 0.3)  # away from the identity start, so the head's choices matter
@@ -145,3 +149,93 @@ def test_init_script_puts_the_shipped_base_in(tmp_path: Path) -> None:
     batch = synthetic_batch(shipped, spp=4, height=16, width=16, generator=torch.Generator().manual_seed(9))
     with torch.no_grad():
         torch.testing.assert_close(model.base(batch), shipped(batch), rtol=0, atol=0)
+
+
+def _reference_power_mean(x: torch.Tensor, r: int, p: int) -> torch.Tensor:
+    """The window mean written out: every pixel's (2r+1)^2 neighbours, the edge repeated."""
+    h, w = x.shape[-2:]
+    acc = torch.zeros_like(x)
+    ys, xs = torch.arange(h).view(h, 1), torch.arange(w).view(1, w)
+    for dy in range(-r, r + 1):
+        for dx in range(-r, r + 1):
+            acc = acc + x[..., (ys + dy).clamp(0, h - 1).expand(h, w), (xs + dx).clamp(0, w - 1).expand(h, w)] ** p
+    return (acc / (2 * r + 1) ** 2) ** (1.0 / p)
+
+
+def test_power_mean_equals_the_written_out_window_float64() -> None:
+    """Catches zero padding at the border (a dark rim would read as 'a light nearby' on the other
+    side), a window of the wrong size and a missing root."""
+    x = torch.rand(2, 1, 11, 14, dtype=torch.float64, generator=torch.Generator().manual_seed(10))
+    for r in (1, 4):
+        torch.testing.assert_close(power_mean(x, r, 4), _reference_power_mean(x, r, 4), rtol=1e-12, atol=1e-12)
+
+
+def test_context_features_gradcheck() -> None:
+    """Catches a backward that differs from the forward, and a gradient that is not finite on a
+    black window (the floor under the power mean's root)."""
+    g = torch.Generator().manual_seed(11)
+    lum = (torch.rand(1, 1, 9, 10, generator=g, dtype=torch.float64) + 0.1).requires_grad_(True)
+    mask = torch.zeros(1, 1, 9, 10, dtype=torch.bool)
+    mask[..., 4, 4] = True
+    assert torch.autograd.gradcheck(lambda t: context_features(t, mask), (lum,))
+    black = torch.zeros(1, 1, 9, 10, dtype=torch.float64, requires_grad=True)
+    context_features(black, None).sum().backward()
+    assert torch.isfinite(black.grad).all()
+
+
+def test_context_features_locate_a_light_and_ignore_exposure() -> None:
+    """Catches proximity windows of the wrong reach (a light 5 pixels away must register in the
+    13x13 window and not in the 5x5), a brightness context that reads a flat wall as 'near a
+    light', and one that is not exposure-invariant (log of raw luminance instead of a ratio)."""
+    lum = torch.full((1, 1, 31, 31), 0.05, dtype=torch.float64)
+    lum[..., 15, 15] = 500.0  # a lamp's bright pixel (as in a reflection: not in the emitter mask)
+    mask = torch.zeros(1, 1, 31, 31, dtype=torch.bool)
+    mask[..., 15, 20] = True
+    f = context_features(lum, mask)
+    near_small, near_wide, glow_small, glow_wide = f[0, :, 15]
+    assert near_small[20] > 0 and near_small[15] == 0 and near_wide[15] > 0 and near_wide[13] == 0
+    assert near_small[20] < 1 and NEAR_RADII == (2, 6)
+    # 4 px from the bright pixel: inside the 9x9 window; 10 px: only the 25x25 one reaches it.
+    assert glow_small[11] > 3 and glow_small[10] == 0 and glow_wide[5] > 3 and GLOW_RADII == (4, 12)
+    flat = context_features(torch.full((1, 1, 31, 31), 0.05, dtype=torch.float64), None)
+    torch.testing.assert_close(flat, torch.zeros_like(flat), rtol=0, atol=1e-12)
+    # Exposure: 8x brighter, the same glow (the floor under the luminance is 1e-3: far below these).
+    glow8 = context_features(lum * 8, mask)[:, 2:]
+    torch.testing.assert_close(glow8, f[:, 2:], rtol=0, atol=2e-2)
+
+
+def test_context_preset_tiles_like_the_whole_image() -> None:
+    """Catches a receptive field measured too short for the context windows (a max pool's gradient
+    reaches only its argmax, so the probe would cut tiles too tight), and context features that
+    depend on where a tile starts. Tiles get the whole image's exposure scale, as denoise gives them."""
+    from mcdenoise.infer.receptive import alignment, receptive_field
+    from mcdenoise.infer.tiling import plan_tiles, run_tiled
+    from mcdenoise.models.exposure import EXPOSURE_SCALE, batch_exposure
+
+    model = _model(context=True).eval()
+    with torch.no_grad():
+        for p in model.net.parameters():
+            p.normal_(0, 0.3)  # away from the identity start, so the features matter
+    rf = receptive_field(model)
+    assert rf == 43 + max(GLOW_RADII), "the context windows add their radius to the stage's reach"
+    model = model.double()
+    h, w = 61, 67
+    batch = synthetic_batch(model, spp=2, height=h, width=w, dtype=torch.float64,
+                            generator=torch.Generator().manual_seed(12))
+    scale = batch_exposure(batch, model.exposure_colour(batch), model.autoexposure)
+
+    def read(tile):
+        y0, x0, th, tw = tile.window
+        b = {k: (v if k == "scene_features" else v[..., y0 : y0 + th, x0 : x0 + tw]) for k, v in batch.items()}
+        return {**b, EXPOSURE_SCALE: scale}
+
+    def tiled_error(receptive: int) -> float:
+        plan = plan_tiles(h, w, receptive=receptive, align=alignment(model), core=12)
+        assert len(plan) >= 4
+        tiled = torch.from_numpy(run_tiled(model, read, plan))
+        return ((tiled - whole[0]).abs().amax() / whole.abs().amax()).item()
+
+    with torch.no_grad():
+        whole = model(batch)
+        assert tiled_error(rf) < 1e-9, "tiles differ from the whole image"
+        assert tiled_error(rf - max(GLOW_RADII)) > 1e-6, "the context windows' reach did not matter: the test is blind"

@@ -107,6 +107,28 @@ def test_ratio_by_lighting_groups_and_geometric_means(tmp_path: Path, monkeypatc
     assert capsys.readouterr().out.splitlines()[-1].split()[-2:] == ["2.0000", "(n=3)"]
 
 
+def test_ratio_by_lighting_psnr_mode(tmp_path: Path, monkeypatch, capsys) -> None:
+    """Catches a PSNR mode that reads the relMSE field, takes OLD - NEW (a loss printed as a gain),
+    or counts the images where NEW is lower wrong."""
+    rl = load_script("ratio_by_lighting")
+    assert rl.psnr_differences({"a": [(30.0, 30.5), (28.0, 27.0)]})["a"] == (2, 0.25, 1)
+    images, rows = [], []
+    for i, (meta, new_db) in enumerate([(_meta("indoor", True, 3), 29.0), (_meta("outdoor", False, 0), 31.5),
+                                        (_meta("outdoor", False, 0), 29.5)]):
+        d = tmp_path / f"im{i}"
+        d.mkdir()
+        (d / "meta.json").write_text(json.dumps(meta))
+        images.append({"id": f"im{i}", "path": str(d)})
+        rows += [{"image": f"im{i}", "spp": 4, "method": "old", "relmse": 0.1, "psnr": 30.0},
+                 {"image": f"im{i}", "spp": 4, "method": "new", "relmse": 0.3, "psnr": new_db}]
+    report = tmp_path / "results.json"
+    report.write_text(json.dumps({"images": images, "rows": rows}))
+    monkeypatch.setattr("sys.argv", ["ratio_by_lighting.py", str(report), "old", "new", "--spp", "4", "--metric", "psnr"])
+    rl.main()
+    line = capsys.readouterr().out.splitlines()[-1].split()
+    assert line == ["4", "new", "-1.0000", "dB", "(1/1", "lower)", "+0.5000", "dB", "(1/2", "lower)"]
+
+
 def test_results_block_drift_reads_the_committed_block_and_flags_worse_than_noisy(tmp_path: Path) -> None:
     """Catches a drift check that parses the wrong table (the means table as per-image values, or the
     bold marks as text), pairs images by their full path instead of the scene, or that misses a model

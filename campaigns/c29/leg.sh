@@ -1,20 +1,23 @@
 #!/usr/bin/env bash
 # A campaign-29 leg and its checks, in order (campaigns/c29/rules.txt). Run from the repo root.
-# The defaults are leg 1; leg2.sh sets the variables for leg 2.
+# The defaults are leg 1; leg2.sh sets the variables for leg 2, campaigns/c30/leg_a.sh and leg_b.sh campaign 30's
+# (PRESET, LOSS and L, the log folder, too).
 set -euo pipefail
-MC=${MC:-.venv/bin/mcdenoise}; PY=${PY:-.venv/bin/python}; L=campaigns/c29/logs
+MC=${MC:-.venv/bin/mcdenoise}; PY=${PY:-.venv/bin/python}; L=${L:-campaigns/c29/logs}
 HELD=(data/detail_ref data/detail_ref2 data/rich_ref3 data/rich_val)
 RUN=${RUN:-runs/refine_c29}
 INIT=${INIT:-campaigns/c29/refine_init.safetensors}
 DATA=${DATA:-data/plain_ref}
 STEPS=${STEPS:-800}
 LR=${LR:-1e-3}
+PRESET=${PRESET:-layer_medium}
+LOSS=${LOSS:-smape+0.05*relmse_in+0.05*relmse_in_wide}
 TAG=${TAG:-}                       # log-name prefix
 REPORT=${REPORT:-reports/c29_valscenes}
-[ -e "$INIT" ] || $PY scripts/refine_init.py layer-medium "$INIT" --preset layer_medium
-/usr/bin/time -v $MC train --model refine --preset layer_medium --init "$INIT" \
+[ -e "$INIT" ] || $PY scripts/refine_init.py layer-medium "$INIT" --preset "$PRESET"
+/usr/bin/time -v $MC train --model refine --preset "$PRESET" --init "$INIT" \
   --data "$DATA" --val-data data/plain_ref --out "$RUN" --steps "$STEPS" --batch 8 --crop 96 --lr "$LR" \
-  --loss "smape+0.05*relmse_in+0.05*relmse_in_wide" --target reference --spp 4 16 --val-every 200 --val-images 8 \
+  --loss "$LOSS" --target reference --spp 4 16 --val-every 200 --val-images 8 \
   --checkpoint-every 50 --workers 1 --threads 2 --no-progress $( [ -d "$RUN" ] && echo --resume ) > $L/${TAG}train.log 2>&1
 $PY scripts/consistency_probe.py "${HELD[@]}" --models layer-medium "$RUN" --spp 4 8 16 --ks 4 > $L/${TAG}probe.log 2>&1
 $PY scripts/brightness_by_quartile.py "${HELD[@]}" --models layer-medium "$RUN" --spp 4 --summary > $L/${TAG}brightness.log 2>&1

@@ -113,13 +113,16 @@ def max3x3(x: torch.Tensor) -> torch.Tensor:
     return out
 
 
-def apply_weights(candidates: list[torch.Tensor], weights: torch.Tensor, k: int) -> torch.Tensor:
-    """``sum_c sum_t weights[:, c*k*k + t] * candidates[c](p + t)`` -> (B, 3, H, W).
+def apply_weights(candidates: list[torch.Tensor], weights: torch.Tensor, k: int,
+                  dilations: list[int] | None = None) -> torch.Tensor:
+    """``sum_c sum_t weights[:, c*k*k + t] * candidates[c](p + d_c * t)`` -> (B, C, H, W).
 
     Reference implementation (unfold): ``weights`` (B, len(candidates)*k*k, H, W), normalised by the
-    caller; candidates are replicate-padded so border taps repeat the edge instead of adding zeros.
+    caller, taps in row-major order over ``t in [-k//2, k//2]^2``; ``dilations`` the ``d_c`` (None:
+    all 1; refine's coarse candidates take their taps farther apart). Candidates are replicate-padded
+    so border taps repeat the edge instead of adding zeros.
     """
-    b, _, h, w = candidates[0].shape
+    b, ch, h, w = candidates[0].shape
     r = k // 2
     if k == 1:  # one tap per candidate: a weighted sum, no unfold copies
         out = candidates[0] * weights[:, 0:1]
@@ -128,8 +131,10 @@ def apply_weights(candidates: list[torch.Tensor], weights: torch.Tensor, k: int)
         return out
     out = torch.zeros_like(candidates[0])
     for c, img in enumerate(candidates):
-        padded = F.pad(img, (r, r, r, r), mode="replicate") if r else img
-        taps = F.unfold(padded, k).view(b, 3, k * k, h, w)
+        d = 1 if dilations is None else int(dilations[c])
+        p = r * d
+        padded = F.pad(img, (p, p, p, p), mode="replicate") if p else img
+        taps = F.unfold(padded, k, dilation=d).view(b, ch, k * k, h, w)
         out = out + (taps * weights[:, c * k * k : (c + 1) * k * k].unsqueeze(1)).sum(dim=2)
     return out
 

@@ -31,16 +31,24 @@ import torch.nn.functional as F
 
 from mcdenoise.models.base import Denoiser, build_from_fields, register_model
 from mcdenoise.models.blocks import UNet
-from mcdenoise.models.combine import LOGIT_BOUND, _lum, max3x3
+from mcdenoise.models.combine import LOGIT_BOUND, _lum, apply_weights, max3x3
 from mcdenoise.models.emitters import _tracing, as_reflectance, batch_emitter_mask, fill_from_neighbours, pass_through
 from mcdenoise.models.exposure import batch_exposure, check_key
 from mcdenoise.models.refine_config import RefineConfig
 
-__all__ = ["RefineConfig", "Refine", "apply_taps", "blur", "refine_features", "N_FEATURES"]
+__all__ = ["RefineConfig", "Refine", "blur", "context_features", "power_mean", "refine_features",
+           "N_CONTEXT", "N_FEATURES"]
 
 #: Log colour of the base output and of the noisy mean, albedo, normal, the noisy mean's
 #: relative deviation from the base and its relative variance.
 N_FEATURES = 3 + 3 + 3 + 3 + 1 + 1
+#: Context features (``RefineConfig.context``): emitter proximity at two radii, brightness context at two.
+N_CONTEXT = 4
+#: Radii of the emitter-proximity windows (5x5, 13x13) and of the brightness-context windows (9x9, 25x25).
+NEAR_RADII = (2, 6)
+GLOW_RADII = (4, 12)
+#: Exponent of the power mean that stands in for a window's maximum (see :func:`power_mean`).
+POWER = 4
 #: Floor of luminance denominators at the autoexposure scale (key 0.18: a mid-grey image's
 #: luminance is 0.18, so 1e-3 is about 7.5 stops below it).
 EPS = 1e-3
@@ -56,28 +64,37 @@ def blur(x: torch.Tensor, f: int) -> torch.Tensor:
     return F.avg_pool2d(F.pad(x, (r, r, r, r), mode="replicate"), 2 * r + 1, stride=1)
 
 
-def apply_taps(candidates: list[torch.Tensor], dilations: list[int], weights: torch.Tensor, k: int) -> torch.Tensor:
-    """``sum_c sum_t weights[:, c*k*k + t] * candidates[c](p + dilations[c] * t)`` -> (B, 3, H, W).
+def power_mean(x: torch.Tensor, r: int, p: int = POWER) -> torch.Tensor:
+    """``(B, C, H, W)`` >= 0 -> same: ``mean(x^p)^(1/p)`` over each pixel's ``(2r+1)^2`` window, the edge
+    repeated. A soft maximum (one pixel of value v among n zeros gives ``v / n^(1/p)``), chosen over
+    max pooling because its gradient reaches every pixel of the window: the receptive-field probe of
+    tiled inference follows gradients, and a max pool's reach only its argmax, so tiles would be cut
+    too tight. Homogeneous of degree 1, so ratios of it are exposure-invariant."""
+    return F.avg_pool2d(F.pad(x.pow(p), (r, r, r, r), mode="replicate"), 2 * r + 1, stride=1).pow(1.0 / p)
 
-    ``weights`` (B, len(candidates)*k*k, H, W), normalised by the caller, taps in row-major order
-    over ``t in [-k//2, k//2]^2``; candidates are replicate-padded, so border taps repeat the edge.
-    """
-    b, _, h, w = candidates[0].shape
-    r = k // 2
-    out = torch.zeros_like(candidates[0])
-    for c, (img, d) in enumerate(zip(candidates, dilations)):
-        p = r * d
-        padded = F.pad(img, (p, p, p, p), mode="replicate") if p else img
-        taps = F.unfold(padded, k, dilation=d).view(b, img.shape[1], k * k, h, w)
-        out = out + (taps * weights[:, c * k * k : (c + 1) * k * k].unsqueeze(1)).sum(dim=2)
-    return out
+
+def context_features(lum: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
+    """``(B, N_CONTEXT, H, W)``: where bright things are around each pixel. ``lum`` (B, 1, H, W) the
+    base output's luminance at the autoexposure scale, ``mask`` (B, 1, H, W) bool emitter pixels or None.
+
+    Emitter proximity: the power mean of the mask over 5x5 and 13x13 (0 far from a light seen
+    directly, 1 inside one). Brightness context: ``log`` of the power mean of the luminance over 9x9
+    and 25x25 over the pixel's own, so a pixel near a light seen directly or in a reflection, whose
+    neighbourhood falls off steeply, reads a large value and a flat dim wall reads about 0."""
+    # The floor keeps the power mean's gradient finite on black windows, the cap its 4th power in float32.
+    lum = lum.clamp(0, 1e6) + EPS
+    near = torch.zeros_like(lum) if mask is None else mask.to(lum.dtype)
+    feats = [power_mean(near, r) for r in NEAR_RADII] + [torch.log(power_mean(lum, r) / lum) for r in GLOW_RADII]
+    return torch.cat(feats, dim=1)
 
 
 def refine_features(base: torch.Tensor, noisy: torch.Tensor, var_mean: torch.Tensor, albedo: torch.Tensor,
-                    normal: torch.Tensor, scale: torch.Tensor | None) -> torch.Tensor:
-    """``(B, N_FEATURES, H, W)`` inputs of the head, exposure-normalised: ``base``, ``noisy`` (B, 3,
-    H, W) radiance, ``var_mean`` (B, 3, H, W) the variance of the noisy mean, ``albedo`` and
-    ``normal`` (B, 3, H, W) pixel means, ``scale`` (B,) the autoexposure scale (None: 1)."""
+                    normal: torch.Tensor, scale: torch.Tensor | None, mask: torch.Tensor | None = None,
+                    context: bool = False) -> torch.Tensor:
+    """``(B, N_FEATURES [+ N_CONTEXT], H, W)`` inputs of the head, exposure-normalised: ``base``,
+    ``noisy`` (B, 3, H, W) radiance, ``var_mean`` (B, 3, H, W) the variance of the noisy mean,
+    ``albedo`` and ``normal`` (B, 3, H, W) pixel means, ``scale`` (B,) the autoexposure scale (None:
+    1); with ``context``, :func:`context_features` of the base and the emitter ``mask`` follow."""
     if scale is not None:
         s = scale.to(base.dtype).view(-1, 1, 1, 1)
         base, noisy, var_mean = base * s, noisy * s, var_mean * s * s
@@ -86,7 +103,10 @@ def refine_features(base: torch.Tensor, noisy: torch.Tensor, var_mean: torch.Ten
     # Noise or detail? How far the noisy mean is from the base, relative to the base and to its noise.
     deviation = torch.log1p((ln - lb).abs() / (lb + EPS))
     rel_var = torch.log1p(_lum(var_mean.clamp_min(0)) / (lb * lb + EPS * EPS))
-    return torch.cat([torch.log1p(base), torch.log1p(noisy), albedo.clamp(0, 1), normal, deviation, rel_var], dim=1)
+    feats = [torch.log1p(base), torch.log1p(noisy), albedo.clamp(0, 1), normal, deviation, rel_var]
+    if context:
+        feats.append(context_features(lb, mask))
+    return torch.cat(feats, dim=1)
 
 
 class Refine(Denoiser):
@@ -110,7 +130,8 @@ class Refine(Denoiser):
         self.dilations = [1] + ([1] if config.noisy else []) + [int(f) for f in config.coarse]
         k2 = k * k
         w = config.width
-        self.net = UNet(N_FEATURES, len(self.dilations) * k2, [(w, w)] * config.levels, (w, w), [(w, w)] * config.levels)
+        n_in = N_FEATURES + (N_CONTEXT if config.context else 0)
+        self.net = UNet(n_in, len(self.dilations) * k2, [(w, w)] * config.levels, (w, w), [(w, w)] * config.levels)
         with torch.no_grad():  # (nearly) the identity on the base output: its centre tap
             self.net.final.bias.zero_()
             self.net.final.weight.mul_(0.1)
@@ -180,15 +201,16 @@ class Refine(Denoiser):
             # Lights out of every candidate the taps read; they come back by pass_through.
             base, noisy, var = (fill_from_neighbours(t, mask) for t in (base, noisy, var))
         s = batch_exposure(batch, self.exposure_colour(batch), self.autoexposure) if self.autoexposure else None
-        return refine_features(base, noisy, var, albedo, normal, s), base, noisy, mask
+        feats = refine_features(base, noisy, var, albedo, normal, s, mask, self.config.context)
+        return feats, base, noisy, mask
 
     def features(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
-        """(B, N_FEATURES, H, W): what the head reads (:func:`refine_features`)."""
+        """(B, N_FEATURES [+ N_CONTEXT], H, W): what the head reads (:func:`refine_features`)."""
         return self._stage_inputs(batch)[0]
 
     def forward(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
         feats, base, noisy, mask = self._stage_inputs(batch)
-        out = apply_taps(self.candidates(base, noisy), self.dilations, self.weights(feats), self.config.kernel)
+        out = apply_weights(self.candidates(base, noisy), self.weights(feats), self.config.kernel, self.dilations)
         return pass_through(out, batch["radiance"], mask)
 
 
@@ -200,11 +222,15 @@ def _layer_medium() -> RefineConfig:
     return RefineConfig(base="layer:medium")
 
 
+def _layer_medium_ctx() -> RefineConfig:
+    return RefineConfig(base="layer:medium", context=True)
+
+
 register_model(
     "refine",
     config_cls=RefineConfig,
     presets={"small": lambda: RefineConfig(), "paper": lambda: RefineConfig(width=32, levels=3),
-             "layer_medium": _layer_medium},
+             "layer_medium": _layer_medium, "layer_medium_ctx": _layer_medium_ctx},
     paper=_PAPER,
     description="a frozen base model (layer-medium), then per-pixel softmax 5x5 taps over its output, the clamped "
                 "noisy mean and the output blurred at 2x and 4x",

@@ -33,9 +33,8 @@ class RefineConfig:
     kernel: int = 5
     start_logit: float = 10.0
     coarse: tuple[int, ...] = (2, 4)
-    """Box-downsampling factors of the coarse candidates: the base output averaged over f x f
-    blocks, bilinearly back to full size, its taps dilated by f (a 5x5 tap grid then spans 4f+1
-    pixels). Why: campaign 28's error bands put layer-medium's 4-spp deficit against OIDN high in the
+    """Scales of the coarse candidates: the base output box-blurred over (2f-1) x (2f-1) pixels
+    (stride 1), its taps dilated by f (a 5x5 tap grid then spans 4f+1 pixels). Why: campaign 28's error bands put layer-medium's 4-spp deficit against OIDN high in the
     dark rooms lit by small sources at 8-32-pixel blocks (2.4-3.1x OIDN at 32), wider than its 17x17
     kernels, while running the same network on 2x2-merged samples (no learning) was worse at 2-8
     pixels: which scale to trust where must be learned per pixel."""
@@ -45,6 +44,12 @@ class RefineConfig:
     with the block size, campaign 28), detail the base smoothed away; the clamp keeps a firefly of
     the few samples out (the combiner's measurement, :class:`~mcdenoise.models.combine_config.CombineConfig`)."""
     noisy_clamp: float = 1.0
+    context: bool = False
+    """Four more head features that say where bright things are (:func:`~mcdenoise.models.refine.context_features`):
+    the emitter mask max-pooled over 5x5 and 13x13, and how much brighter the base output gets within 9x9 and
+    25x25. Why: campaign 29's head, reading per-pixel statistics only, smoothed the isolated outliers of dim
+    rooms (third-party relMSE 0.62x layer-medium at the pixel scale) but lost 0.05-0.11 dB of held-out PSNR on
+    the images with small bright emitters and nothing on the others: it could not tell the two apart."""
     autoexposure: float | None = 0.18
     """Key of the features' exposure scale when the base has none (the base's key otherwise, so that
     tiled inference gives both one scale)."""
