@@ -1,7 +1,7 @@
 """Scripts that read eval reports, datasets or saved outputs (scripts/compare_on_valscenes.py, scripts/bright_share_vs_ratio.py,
 scripts/ratio_by_lighting.py,
 scripts/results_block_drift.py, scripts/dataset_fingerprint.py,
-scripts/error_bands.py, scripts/two_scale_probe.py)."""
+scripts/error_bands.py, scripts/two_scale_probe.py, scripts/loss_balance.py)."""
 
 from __future__ import annotations
 
@@ -242,3 +242,24 @@ def test_two_scale_probe_merges_blocks_and_keeps_a_consistent_image() -> None:
     half = full.reshape(3, 4, 2, 4, 2).mean(axis=(2, 4))
     assert np.abs(ts.two_scale(full, half) - full).max() < 1e-6
     assert ts.two_scale(full, half + 0.5).mean() > full.mean() + 0.45  # the coarse band is the half one's
+
+
+def test_loss_balance_ratios_and_powers_of_two(tmp_path: Path, monkeypatch, capsys) -> None:
+    """Catches an inverted ratio (the weight that would make the new term 1/ratio as large), a
+    guided loss called without the input's guide (a crash), and means over a different number of
+    crops than asked: a term against itself is exactly 1, and the printed means give the ratio."""
+    from train_tiny_data import make_tiny_dataset
+
+    data = make_tiny_dataset(tmp_path / "data", train=2, val=0, spp=4, size=24)
+    lb = load_script("loss_balance")
+    monkeypatch.setattr("sys.argv", ["loss_balance.py", "layer-small", str(data), "--terms", "smape", "tonemapped_l2",
+                                     "relmse_in", "smape", "--crop", "16", "--spp", "2", "--crops", "4", "--batch", "2"])
+    lb.main()
+    out = capsys.readouterr().out.splitlines()
+    assert "on 4 crops" in out[0]
+    rows = [line.split() for line in out[1:]]
+    means = [float(r[2]) for r in rows]
+    ratios = [float(r[r.index("smape:") + 1]) for r in rows]
+    assert ratios[0] == 1.0 and ratios[3] == 1.0 and means[3] == means[0]
+    for m, r in zip(means[1:3], ratios[1:3]):
+        assert abs(r - means[0] / m) <= 1e-3 * r  # printed to 4 significant digits
