@@ -69,6 +69,22 @@ def _meta(kind: str, window: bool, bulbs: int) -> dict:
     return {"extra": {"procedural": {"kind": kind, "rich": {"window": window, "small_emitters": bulbs, "night": False}}}}
 
 
+def _lighting_report(tmp_path: Path, values: list[float], rows_of) -> Path:
+    """An eval report over three procedural images (one with bulbs, two outdoor without), the
+    image ``i``'s rows from ``rows_of(i, values[i])``."""
+    images, rows = [], []
+    for i, (meta, v) in enumerate(zip([_meta("indoor", True, 3), _meta("outdoor", False, 0),
+                                       _meta("outdoor", False, 0)], values)):
+        d = tmp_path / f"im{i}"
+        d.mkdir()
+        (d / "meta.json").write_text(json.dumps(meta))
+        images.append({"id": f"im{i}", "path": str(d)})
+        rows += rows_of(i, v)
+    report = tmp_path / "results.json"
+    report.write_text(json.dumps({"images": images, "rows": rows}))
+    return report
+
+
 def test_ratio_by_lighting_groups_and_geometric_means(tmp_path: Path, monkeypatch, capsys) -> None:
     """Catches bulbs counted from the wrong field (every rich image would be "bulbs"), a classic or
     scene-file image sent to a procedural group, an arithmetic mean of ratios (one outlier image would
@@ -83,19 +99,11 @@ def test_ratio_by_lighting_groups_and_geometric_means(tmp_path: Path, monkeypatc
     n, g = rl.geo_ratios({"a": [(4.0, 1.0), (1.0, 4.0)]})["a"]
     assert n == 2 and abs(g - 1.0) < 1e-12  # arithmetic: 2.125
 
-    images, rows = [], []
-    for i, (meta, ratio) in enumerate([(_meta("indoor", True, 3), 0.5), (_meta("outdoor", False, 0), 2.0),
-                                       (_meta("outdoor", False, 0), 8.0)]):
-        d = tmp_path / f"im{i}"
-        d.mkdir()
-        (d / "meta.json").write_text(json.dumps(meta))
-        images.append({"id": f"im{i}", "path": str(d)})
-        rows += [{"image": f"im{i}", "spp": 4, "method": "old", "relmse": 0.1},
-                 {"image": f"im{i}", "spp": 4, "method": "new", "relmse": 0.1 * ratio},
-                 {"image": f"im{i}", "spp": 8, "method": "new", "relmse": 99.0},
-                 {"image": f"im{i}", "spp": 4, "method": "other", "relmse": 99.0}]
-    report = tmp_path / "results.json"
-    report.write_text(json.dumps({"images": images, "rows": rows}))
+    report = _lighting_report(tmp_path, [0.5, 2.0, 8.0], lambda i, ratio: [
+        {"image": f"im{i}", "spp": 4, "method": "old", "relmse": 0.1},
+        {"image": f"im{i}", "spp": 4, "method": "new", "relmse": 0.1 * ratio},
+        {"image": f"im{i}", "spp": 8, "method": "new", "relmse": 99.0},
+        {"image": f"im{i}", "spp": 4, "method": "other", "relmse": 99.0}])
     monkeypatch.setattr("sys.argv", ["ratio_by_lighting.py", str(report), "old", "new", "--spp", "4"])
     rl.main()
     line = capsys.readouterr().out.splitlines()[-1].split()
@@ -112,17 +120,9 @@ def test_ratio_by_lighting_psnr_mode(tmp_path: Path, monkeypatch, capsys) -> Non
     or counts the images where NEW is lower wrong."""
     rl = load_script("ratio_by_lighting")
     assert rl.psnr_differences({"a": [(30.0, 30.5), (28.0, 27.0)]})["a"] == (2, 0.25, 1)
-    images, rows = [], []
-    for i, (meta, new_db) in enumerate([(_meta("indoor", True, 3), 29.0), (_meta("outdoor", False, 0), 31.5),
-                                        (_meta("outdoor", False, 0), 29.5)]):
-        d = tmp_path / f"im{i}"
-        d.mkdir()
-        (d / "meta.json").write_text(json.dumps(meta))
-        images.append({"id": f"im{i}", "path": str(d)})
-        rows += [{"image": f"im{i}", "spp": 4, "method": "old", "relmse": 0.1, "psnr": 30.0},
-                 {"image": f"im{i}", "spp": 4, "method": "new", "relmse": 0.3, "psnr": new_db}]
-    report = tmp_path / "results.json"
-    report.write_text(json.dumps({"images": images, "rows": rows}))
+    report = _lighting_report(tmp_path, [29.0, 31.5, 29.5], lambda i, new_db: [
+        {"image": f"im{i}", "spp": 4, "method": "old", "relmse": 0.1, "psnr": 30.0},
+        {"image": f"im{i}", "spp": 4, "method": "new", "relmse": 0.3, "psnr": new_db}])
     monkeypatch.setattr("sys.argv", ["ratio_by_lighting.py", str(report), "old", "new", "--spp", "4", "--metric", "psnr"])
     rl.main()
     line = capsys.readouterr().out.splitlines()[-1].split()
