@@ -7,6 +7,7 @@ relMSE and 4 decimals of PSNR, since a shipping rule compares them and legs diff
     python scripts/compare_on_valscenes.py reports/val_RUN/results.json OLD NEW [--baseline oidn-high]
     python scripts/compare_on_valscenes.py reports/new/results.json reports/old/results.json OLD NEW
     python scripts/compare_on_valscenes.py ... OLD NEW --per-scene   # + NEW / OLD per scene, over the seeds
+    python scripts/compare_on_valscenes.py ... oidn-high NEW --exclude bathroom   # the means without a scene
 
 Several reports are merged (the first one to hold an image, spp and method wins), so a model
 scored alone can be compared with one scored in another run on the same inputs.
@@ -55,11 +56,19 @@ def main() -> None:
     ap.add_argument("--baseline", default="oidn-high")
     ap.add_argument("--per-scene", action="store_true",
                     help="also print, per scene, NEW's mean relMSE over the seeds divided by OLD's")
+    ap.add_argument("--exclude", nargs="+", default=[], metavar="SCENE",
+                    help="leave these scenes out of every figure (how much one scene decides a mean)")
     a = ap.parse_args()
     if len(a.args) < 3:
         ap.error("give one or more results.json, then OLD and NEW")
     *files, old, new = a.args
     d = collect(files)
+    unknown = set(a.exclude) - {k[0] for k in d}
+    if unknown:
+        ap.error(f"--exclude: no scene {', '.join(sorted(unknown))} in the reports")
+    d = {k: v for k, v in d.items() if k[0] not in a.exclude}
+    if a.exclude:
+        print(f"without {', '.join(a.exclude)}:")
     for spp in sorted({k[2] for k in d}):
         sc = {k[:2]: v for k, v in d.items() if k[2] == spp and old in v and new in v}
         for m in (old, new, a.baseline, "noisy"):

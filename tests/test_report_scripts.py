@@ -39,6 +39,27 @@ def test_compare_on_valscenes_first_report_wins(tmp_path: Path) -> None:
     assert cmp.collect([str(b), str(a)])[("lamp", 7, 4)]["old"][0] == 0.5
 
 
+def test_compare_on_valscenes_exclude_drops_a_scene_from_every_mean(tmp_path: Path, monkeypatch, capsys) -> None:
+    """Catches --exclude that filters only one printed figure (the means would still hold the scene),
+    matches scene names by substring (teapot would drop teapot-full), or silently ignores a misspelt
+    scene (a mean "without" it would be the full mean)."""
+    import pytest
+
+    cmp = load_script("compare_on_valscenes")
+    rep = _report(tmp_path / "r.json", "scene_inputs/", ["bathroom", "teapot", "teapot-full"], [7], 0.1)
+    monkeypatch.setattr("sys.argv", ["compare_on_valscenes.py", str(rep), "old", "new", "--exclude", "teapot"])
+    cmp.main()
+    out = capsys.readouterr().out.splitlines()
+    assert out[0] == "without teapot:"
+    # old's relMSE is 0.1 * (1, 2, 3) over the three scenes: without teapot (2), mean (0.1 + 0.3) / 2.
+    assert out[1].split()[:5] == ["4", "spp", "old", "relMSE", "0.20000"]
+    assert "        new better than old on 0/2 scene renderings" in out  # two renderings left, not three
+    monkeypatch.setattr("sys.argv", ["compare_on_valscenes.py", str(rep), "old", "new", "--exclude", "teapots"])
+    with pytest.raises(SystemExit):
+        cmp.main()
+    assert "no scene teapots" in capsys.readouterr().err
+
+
 def test_bright_share_and_spearman() -> None:
     """Catches a share taken over the darkest pixels or per channel instead of luminance, and a rank
     correlation that is not invariant to monotone maps (or has the wrong sign)."""
