@@ -32,9 +32,8 @@ def main() -> None:
     a = ap.parse_args()
     torch.set_num_threads(a.threads)
     model, info = load_denoiser(a.model)
-    data = a.data.split(",") if "," in a.data else a.data
     cfg = DataConfig(crop=a.crop, batch=a.batch, spp_range=(a.spp, a.spp), workers=0, seed=a.seed)
-    source = batch_source(data, model, cfg)
+    source = batch_source(a.data, model, cfg)  # the loader splits "a,b" as --data does
     losses = [get_loss(t) for t in a.terms]
     sums = [0.0] * len(losses)
     steps = math.ceil(a.crops / a.batch)

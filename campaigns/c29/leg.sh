@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # A campaign-29 leg and its checks, in order (campaigns/c29/rules.txt). Run from the repo root.
-# The defaults are leg 1; leg2.sh sets the variables for leg 2, campaigns/c30/leg_a.sh and leg_b.sh campaign 30's
+# The defaults are leg 1; leg2.sh sets the variables for leg 2, campaigns/c30/leg_*.sh for campaign 30's legs
 # (PRESET, LOSS and L, the log folder, too).
 set -euo pipefail
 MC=${MC:-.venv/bin/mcdenoise}; PY=${PY:-.venv/bin/python}; L=${L:-campaigns/c29/logs}
