@@ -12,7 +12,8 @@ without the clamp.
 A ``k`` written ``K@N`` (``4@8``) clamps only from ``N`` samples per pixel (the configuration's
 ``consistency_min_spp``): below it the output is the unclamped one. ``Km`` (``4m``, ``4m@8``) takes
 the median of the 5x5 box's variances instead of their mean (``consistency_box``). The last lines
-apply the rule to each model: the eligible settings with their sums, and the choice.
+apply the rule to each model: the eligible settings with their sums, and the choice; then, for the last
+``k`` given, each later model paired with the first (the standing rule's figures, to 5 decimals).
 """
 from __future__ import annotations
 
@@ -52,6 +53,24 @@ def rule_choice(figures: dict[str, dict[int, tuple[float, float]]]) -> tuple[lis
     return ok, ok[0] if ok else "none"
 
 
+def paired_lines(per_image: dict[tuple[str, str, int], np.ndarray], first: str, key: str = "k 4") -> list[str]:
+    """The standing rule's paired figures, each model's setting ``key`` against ``first``'s, per spp:
+    the ratio of geometric-mean relMSE, the mean PSNR difference to 5 decimals (the 4 of the
+    per-model lines can tie), and on how many images the PSNR is higher. ``per_image[(model, key,
+    spp)]`` is an (images, 2) array of (relMSE, PSNR) in one image order for every model."""
+    lines = []
+    for (name, k, spp), v in sorted(per_image.items(), key=lambda kv: (kv[0][2], kv[0][0])):
+        base = per_image.get((first, key, spp))
+        if name == first or k != key or base is None:
+            continue
+        ratio = float(np.exp(np.log(v[:, 0]).mean() - np.log(base[:, 0]).mean()))
+        diff = float((v[:, 1] - base[:, 1]).mean())
+        higher = int((v[:, 1] > base[:, 1]).sum())
+        lines.append(f"paired spp {spp:2d} {name} {key} vs {first} {key}: relMSE geo ratio {ratio:.5f}, "
+                     f"PSNR {diff:+.5f} dB, higher on {higher} of {len(v)}")
+    return lines
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("roots", nargs="+")
@@ -71,6 +90,7 @@ def main() -> None:
         m, info = load_denoiser(spec)
         methods.append(ModelMethod(info.get("label", spec), m, info, "cpu"))
     figures: dict[str, dict[str, dict[int, tuple[float, float]]]] = {}
+    per_image: dict[tuple[str, str, int], np.ndarray] = {}
     for spp in a.spp:
         res: dict = {}
         for im in images:
@@ -95,6 +115,7 @@ def main() -> None:
         for name, r in res.items():
             for key, v in r.items():
                 v = np.array(v)
+                per_image[(name, key, spp)] = v[:, :2]
                 wr, wp = int((v[:, 0] >= v[:, 2]).sum()), int((v[:, 1] <= v[:, 3]).sum())
                 figures.setdefault(name, {}).setdefault(key, {})[spp] = (float(np.exp(np.log(v[:, 0]).mean())),
                                                                            float(v[:, 1].mean()))
@@ -105,6 +126,8 @@ def main() -> None:
         ok, choice = rule_choice(f)
         sums = ", ".join(f"{key} ({sum(v[0] for v in f[key].values()):.5f})" for key in ok)
         print(f"rule {name}: eligible {sums or 'none'}; choice {choice}")
+    for line in paired_lines(per_image, methods[0].name, k_label(*a.ks[-1])):
+        print(line)
 
 
 if __name__ == "__main__":

@@ -337,3 +337,18 @@ def test_probe_rule_picks_the_lowest_sum_among_settings_nowhere_below_the_unclam
     assert probe.rule_choice(figures) == (["k 3@8", "k 4"], "k 3@8")
     assert probe.rule_choice({"none": figures["none"], "k 3": figures["k 3"]}) == ([], "none")
     assert probe.parse_k("4m@8") == (4.0, 8, "median") and probe.parse_k("2.5") == (2.5, 2, "mean")
+
+
+def test_probe_paired_lines_give_the_candidate_minus_the_first_model_to_five_decimals() -> None:
+    """scripts/consistency_probe.py's paired figures: catches the difference taken the wrong way round
+    (shipped minus candidate), a PSNR difference rounded to the 4 decimals at which two models tie,
+    a ratio of arithmetic instead of geometric means, and the first model paired with itself."""
+    from repo_scripts import load_script
+
+    probe = load_script("consistency_probe")
+    ship = np.array([[0.10, 26.00000], [0.40, 27.00000]])
+    cand = np.array([[0.05, 26.00004], [0.40, 27.00002]])  # PSNR +0.00003 dB: a tie at 4 decimals
+    lines = probe.paired_lines({("ship", "k 4", 4): ship, ("cand", "k 4", 4): cand,
+                                ("cand", "none", 4): cand}, "ship")
+    assert lines == [f"paired spp  4 cand k 4 vs ship k 4: relMSE geo ratio {np.sqrt(0.5):.5f}, "
+                     "PSNR +0.00003 dB, higher on 2 of 2"]
