@@ -84,7 +84,7 @@ def main() -> None:
                 cells = [f"{res[g][1]:.4f} (n={res[g][0]})" if g in res else "-" for g in groups]
             else:
                 dif = psnr_differences(pairs)
-                cells = [f"{dif[g][1]:+.4f} dB ({dif[g][2]}/{dif[g][0]} lower)" if g in dif else "-" for g in groups]
+                cells = [f"{dif[g][1]:+.5f} dB ({dif[g][2]}/{dif[g][0]} lower)" if g in dif else "-" for g in groups]
             print(f"{spp:>3}  {m[:20]:<20} " + "  ".join(f"{c:>26}" for c in cells))
 
 

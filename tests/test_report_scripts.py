@@ -138,7 +138,8 @@ def test_ratio_by_lighting_groups_and_geometric_means(tmp_path: Path, monkeypatc
 
 def test_ratio_by_lighting_psnr_mode(tmp_path: Path, monkeypatch, capsys) -> None:
     """Catches a PSNR mode that reads the relMSE field, takes OLD - NEW (a loss printed as a gain),
-    or counts the images where NEW is lower wrong."""
+    counts the images where NEW is lower wrong, or prints fewer than the 5 decimals at which a
+    campaign's tie was decided."""
     rl = load_script("ratio_by_lighting")
     assert rl.psnr_differences({"a": [(30.0, 30.5), (28.0, 27.0)]})["a"] == (2, 0.25, 1)
     report = _lighting_report(tmp_path, [29.0, 31.5, 29.5], lambda i, new_db: [
@@ -147,7 +148,7 @@ def test_ratio_by_lighting_psnr_mode(tmp_path: Path, monkeypatch, capsys) -> Non
     monkeypatch.setattr("sys.argv", ["ratio_by_lighting.py", str(report), "old", "new", "--spp", "4", "--metric", "psnr"])
     rl.main()
     line = capsys.readouterr().out.splitlines()[-1].split()
-    assert line == ["4", "new", "-1.0000", "dB", "(1/1", "lower)", "+0.5000", "dB", "(1/2", "lower)"]
+    assert line == ["4", "new", "-1.00000", "dB", "(1/1", "lower)", "+0.50000", "dB", "(1/2", "lower)"]
 
 
 def test_results_block_drift_reads_the_committed_block_and_flags_worse_than_noisy(tmp_path: Path) -> None:
