@@ -244,6 +244,29 @@ def test_error_bands_block_means_keep_only_coarse_error() -> None:
     assert np.allclose(r, r[0]) and r[0] > 0
 
 
+def test_error_bands_keeps_images_of_the_same_folder_name_apart(tmp_path: Path) -> None:
+    """Catches images keyed by their last folder's name: the views of a held-out dataset
+    (``detail_ref/proc_000031/view_000``) and the scenes of two datasets share names, and 46 held-out
+    images were scored as 10, the last of each name standing for the others (campaign 32)."""
+    import numpy as np
+
+    from mcdenoise.io.exr import write_exr
+
+    eb = load_script("error_bands")
+    ref = np.ones((3, 4, 4), dtype=np.float32)
+    folders = ["a/proc_0/view_000", "a/proc_0/view_001", "b/proc_0/view_000"]
+    for i, f in enumerate(folders):
+        d = tmp_path / "images" / f
+        (d / "4spp").mkdir(parents=True)
+        write_exr(d / "reference.exr", {"radiance": ref})
+        write_exr(d / "4spp" / "x.exr", {"radiance": ref * (1 + 0.1 * (i + 1))})
+        write_exr(d / "4spp" / "y.exr", {"radiance": ref})
+    data = eb.collect(tmp_path, ["x", "y"], [1])
+    assert sorted(data[4]) == folders
+    got = [data[4][f]["x"][0] for f in folders]
+    assert np.allclose(got, [(0.1 * (i + 1)) ** 2 / 1.01 for i in range(3)])
+
+
 def test_two_scale_probe_merges_blocks_and_keeps_a_consistent_image() -> None:
     """Catches a 2x2 merge that mixes pixels of other blocks or leaves sub-pixel positions in the
     small pixel's frame (the half-resolution pass would then see samples at the wrong places), and a
