@@ -7,7 +7,7 @@ MC=${MC:-.venv/bin/mcdenoise}; PY=${PY:-.venv/bin/python}; L=campaigns/c32/logs
 HELD=(data/detail_ref data/detail_ref2 data/rich_ref3 data/rich_val)
 RUN=runs/refine_c32h INIT=campaigns/c32/refine_ctx_w32l3_init.safetensors SHIPPED=refine-layer_medium_ctx
 [ -e "$INIT" ] || $PY scripts/refine_init.py layer-medium "$INIT" --preset layer_medium_ctx --set width=32 levels=3
-/usr/bin/time -v $MC train --model refine --preset layer_medium_ctx --model-overrides '{"width": 32, "levels": 3}' \
+/usr/bin/time -v $MC train --model refine --preset layer_medium_ctx \
   --init "$INIT" --data data/plain_ref,data/detail_ref,data/detail_ref2 --val-data data/plain_ref --out "$RUN" \
   --steps 800 --batch 8 --crop 96 --lr 1e-3 --loss "smape+0.05*relmse_in+0.05*relmse_in_wide+512*tonemapped_l2" \
   --target reference --spp 4 16 --val-every 200 --val-images 8 --checkpoint-every 50 --workers 1 --threads 2 \
