@@ -13,7 +13,7 @@ import torch.nn.functional as F
 
 from mcdenoise.models import build_model, synthetic_batch
 from mcdenoise.models.combine import apply_weights
-from mcdenoise.models.refine import GLOW_RADII, NEAR_RADII, blur, context_features, power_mean
+from mcdenoise.models.refine import GLOW_RADII, NEAR_RADII, blur, context_features, noisy_band, power_mean
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -75,6 +75,25 @@ def test_blur_commutes_with_shifts_away_from_the_border() -> None:
     a = torch.roll(blur(x, 4), shifts=(3, 5), dims=(2, 3))[..., 10:18, 10:18]
     b = blur(shifted, 4)[..., 10:18, 10:18]
     torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-12)
+
+
+def test_noisy_band_swaps_only_the_coarse_band_float64() -> None:
+    """Catches a band that is not the base's fine detail plus the noisy mean's coarse band (the sum
+    written out with avg_pool), one that moves the base where the noisy mean agrees with it, a clamp
+    that lets a firefly into the band, and a negative output."""
+    g = torch.Generator().manual_seed(11)
+    base = torch.rand(1, 3, 20, 18, dtype=torch.float64, generator=g) + 0.1
+    torch.testing.assert_close(noisy_band(base, base, 4, 1.0), base, rtol=1e-12, atol=1e-12)
+    noisy = base * (1 + 0.5 * torch.randn(base.shape, dtype=torch.float64, generator=g)).clamp_min(0)
+    pad = lambda x: F.pad(x, (3, 3, 3, 3), mode="replicate")  # noqa: E731
+    box = lambda x: F.avg_pool2d(pad(x), 7, stride=1)  # noqa: E731
+    hi = F.max_pool2d(pad(base)[..., 2:-2, 2:-2], 3, 1)
+    want = (base - box(base) + box(torch.minimum(noisy, 8.0 * hi))).clamp_min(0)
+    torch.testing.assert_close(noisy_band(base, noisy, 4, 8.0), want, rtol=1e-12, atol=1e-12)
+    fly = base.clone()
+    fly[..., 10, 9] = 1e6
+    assert noisy_band(base, fly, 4, 2.0).amax() <= 3 * base.amax()
+    assert (noisy_band(base, torch.zeros_like(base), 4, 2.0) >= 0).all()
 
 
 def _model(seed: int = 0, **over: object) -> torch.nn.Module:

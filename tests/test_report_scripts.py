@@ -1,7 +1,7 @@
 """Scripts that read eval reports, datasets or saved outputs (scripts/compare_on_valscenes.py, scripts/bright_share_vs_ratio.py,
 scripts/ratio_by_lighting.py,
 scripts/results_block_drift.py, scripts/dataset_fingerprint.py,
-scripts/error_bands.py, scripts/two_scale_probe.py, scripts/loss_balance.py)."""
+scripts/error_bands.py, scripts/two_scale_probe.py, scripts/loss_balance.py, scripts/band_probe.py)."""
 
 from __future__ import annotations
 
@@ -265,6 +265,30 @@ def test_error_bands_keeps_images_of_the_same_folder_name_apart(tmp_path: Path) 
     assert sorted(data[4]) == folders
     got = [data[4][f]["x"][0] for f in folders]
     assert np.allclose(got, [(0.1 * (i + 1)) ** 2 / 1.01 for i in range(3)])
+
+
+def test_band_probe_prefers_the_noisy_band_where_the_base_is_biased(tmp_path: Path) -> None:
+    """Catches a probe that scores the wrong image against the reference (base and candidate
+    swapped, or the noisy mean scored as the base): a base 30% too bright everywhere, and a noisy
+    mean that is the reference plus zero-mean checker noise, must give a band candidate better than
+    the base on every image, and counts of images out of the number read."""
+    import numpy as np
+
+    from mcdenoise.io.exr import write_exr
+
+    bp = load_script("band_probe")
+    checker = (np.indices((32, 32)).sum(axis=0) % 2 * 2 - 1.0).astype(np.float32)
+    for i in range(2):
+        ref = np.full((3, 32, 32), 0.2 + 0.1 * i, dtype=np.float32)
+        d = tmp_path / "images" / f"set/img_{i}"
+        (d / "4spp").mkdir(parents=True)
+        write_exr(d / "reference.exr", {"radiance": ref})
+        write_exr(d / "4spp" / "m.exr", {"radiance": ref * 1.3})
+        write_exr(d / "4spp" / "noisy.exr", {"radiance": ref * (1 + 0.5 * checker)})
+    res = bp.score(tmp_path, "m", 4, [4], [4.0])
+    assert sorted(res) == ["base", "f4 c4"] and len(res["base"]) == 2
+    assert all(c[0] < b[0] / 10 and c[1] > b[1] for b, c in zip(res["base"], res["f4 c4"]))
+    assert "2/2" in bp.table("r", res)[-1]
 
 
 def test_two_scale_probe_merges_blocks_and_keeps_a_consistent_image() -> None:

@@ -36,7 +36,7 @@ from mcdenoise.models.emitters import _tracing, as_reflectance, batch_emitter_ma
 from mcdenoise.models.exposure import batch_exposure, check_key
 from mcdenoise.models.refine_config import RefineConfig
 
-__all__ = ["RefineConfig", "Refine", "blur", "context_features", "power_mean", "refine_features",
+__all__ = ["RefineConfig", "Refine", "blur", "context_features", "noisy_band", "power_mean", "refine_features",
            "N_CONTEXT", "N_FEATURES"]
 
 #: Log colour of the base output and of the noisy mean, albedo, normal, the noisy mean's
@@ -62,6 +62,20 @@ def blur(x: torch.Tensor, f: int) -> torch.Tensor:
         return x
     r = f - 1
     return F.avg_pool2d(F.pad(x, (r, r, r, r), mode="replicate"), 2 * r + 1, stride=1)
+
+
+def noisy_band(base: torch.Tensor, noisy: torch.Tensor, f: int, clamp: float) -> torch.Tensor:
+    """``(B, C, H, W)`` -> same: ``base`` with its coarse band (:func:`blur` at ``f``) replaced by the
+    noisy mean's, each noisy pixel first clamped to ``clamp`` times the base's 3x3 maximum:
+
+        max(0, base - blur_f(base) + blur_f(min(noisy, clamp * max3x3(base))))
+
+    Why: a blur of the base keeps the base's own low-frequency bias (campaign 29's coarse candidates
+    did not lower it), while the noisy mean's block means are unbiased and their noise falls with the
+    box's area; the clamp keeps a few fireflies from deciding the band (campaign 32, step 2).
+    With ``noisy == base`` it returns ``base`` (for ``clamp >= 1``)."""
+    n = torch.minimum(noisy, clamp * max3x3(base.clamp_min(0)))
+    return (base - blur(base, f) + blur(n, f)).clamp_min(0)
 
 
 def power_mean(x: torch.Tensor, r: int, p: int = POWER) -> torch.Tensor:
