@@ -9,6 +9,7 @@ candidate is better than the base in relMSE. No learning: a candidate that loses
 gives a second stage nothing to pick.
 
     python scripts/band_probe.py reports/c32_train_detail reports/c32_train_plain --base layer-medium --spp 4
+    python scripts/band_probe.py ... --f 8 16 --c 2 4 8 --exclude 2 4     (bright pixels left out of the box)
 """
 from __future__ import annotations
 
@@ -24,8 +25,10 @@ from mcdenoise.io.exr import read_exr
 from mcdenoise.models.refine import noisy_band
 
 
-def score(report: Path, base_name: str, spp: int, fs: list[int], cs: list[float]) -> dict[str, list[tuple[float, float]]]:
-    """method label -> [(relMSE, PSNR) per image] for ``base`` and every ``f<F> c<C>`` candidate."""
+def score(report: Path, base_name: str, spp: int, fs: list[int], cs: list[float],
+          ts: list[float | None] | None = None) -> dict[str, list[tuple[float, float]]]:
+    """method label -> [(relMSE, PSNR) per image] for ``base`` and every ``f<F> c<C>`` candidate
+    (``f<F> c<C> T<T>`` with bright pixels left out of the box, for each ``T`` of ``ts``; None: none left out)."""
     out: dict[str, list[tuple[float, float]]] = {}
     refs = sorted((report / "images").rglob("reference.exr"))
     if not refs:
@@ -38,8 +41,9 @@ def score(report: Path, base_name: str, spp: int, fs: list[int], cs: list[float]
         base = torch.from_numpy(read_exr(d / f"{base_name}.exr")["radiance"].astype(np.float64))[None]
         noisy = torch.from_numpy(read_exr(d / "noisy.exr")["radiance"].astype(np.float64))[None]
         imgs = {"base": base}
-        for f, c in itertools.product(fs, cs):
-            imgs[f"f{f} c{c:g}"] = noisy_band(base, noisy, f, c)
+        for f, c, t in itertools.product(fs, cs, ts or [None]):
+            label = f"f{f} c{c:g}" + ("" if t is None else f" T{t:g}")
+            imgs[label] = noisy_band(base, noisy, f, c, exclude=t)
         for label, x in imgs.items():
             out.setdefault(label, []).append((float(relmse(x, ref)), float(psnr(x, ref))))
     if not out:
@@ -53,7 +57,7 @@ def table(name: str, res: dict[str, list[tuple[float, float]]]) -> list[str]:
     for label, rows in res.items():
         r = np.array(rows)
         better = "" if label == "base" else f" | {int((r[:, 0] < b[:, 0]).sum())}/{len(r)}"
-        lines.append(f"  {label:10s} | {r[:, 0].mean():.5f} | {r[:, 1].mean():.4f}{better}")
+        lines.append(f"  {label:13s} | {r[:, 0].mean():.5f} | {r[:, 1].mean():.4f}{better}")
     return lines
 
 
@@ -64,10 +68,12 @@ def main() -> None:
     ap.add_argument("--spp", type=int, default=4)
     ap.add_argument("--f", type=int, nargs="+", default=[8, 16], help="box factors (a (2f-1)^2 box)")
     ap.add_argument("--c", type=float, nargs="+", default=[2, 4, 8, 16], help="clamps, times the base's 3x3 maximum")
+    ap.add_argument("--exclude", type=float, nargs="+", default=None, metavar="T",
+                    help="leave pixels brighter than T times their box mean out of the box (noisy_band's exclude)")
     a = ap.parse_args()
     pooled: dict[str, list[tuple[float, float]]] = {}
     for rep in a.reports:
-        res = score(rep, a.base, a.spp, a.f, a.c)
+        res = score(rep, a.base, a.spp, a.f, a.c, a.exclude)
         print("\n".join(table(str(rep), res)))
         for k, v in res.items():
             pooled.setdefault(k, []).extend(v)

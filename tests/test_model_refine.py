@@ -96,6 +96,30 @@ def test_noisy_band_swaps_only_the_coarse_band_float64() -> None:
     assert (noisy_band(base, torch.zeros_like(base), 4, 2.0) >= 0).all()
 
 
+def test_noisy_band_leaves_bright_sparse_pixels_out_of_the_box_float64() -> None:
+    """Catches the halo of a partly covered emitter: a base with one pixel 1e4 brighter than a flat
+    surround, and a noisy mean that misses it (0 there) and equals the base elsewhere. Without
+    ``exclude`` the box spreads the miss over the surround (darker by 1e4 / 49); with it the surround
+    keeps the base. Also: with ``m`` all 1 (a flat base) it equals the plain band, and it never goes
+    negative."""
+    base = torch.full((1, 3, 15, 15), 0.5, dtype=torch.float64)
+    base[..., 7, 7] = 1e4
+    noisy = base.clone()
+    noisy[..., 7, 7] = 0.0
+    plain = noisy_band(base, noisy, 4, 4.0)
+    kept = noisy_band(base, noisy, 4, 4.0, exclude=4.0)
+    ring = torch.ones(15, 15, dtype=torch.bool)
+    ring[7, 7] = False
+    assert (plain[..., ring] - 0.5).abs().amax() > 0.1  # the halo: the surround goes to 0 (clamped)
+    torch.testing.assert_close(kept[..., ring], base[..., ring], rtol=1e-12, atol=1e-12)
+    g = torch.Generator().manual_seed(12)
+    flat = torch.full((1, 3, 12, 12), 0.3, dtype=torch.float64)
+    n = flat * torch.rand(flat.shape, dtype=torch.float64, generator=g) * 2
+    torch.testing.assert_close(noisy_band(flat, n, 3, 8.0, exclude=2.0), noisy_band(flat, n, 3, 8.0),
+                               rtol=1e-12, atol=1e-12)
+    assert (noisy_band(base, torch.zeros_like(base), 4, 2.0, exclude=2.0) >= 0).all()
+
+
 def _model(seed: int = 0, **over: object) -> torch.nn.Module:
     torch.manual_seed(seed)
     return build_model("refine", "small", **over)

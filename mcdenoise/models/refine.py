@@ -64,18 +64,28 @@ def blur(x: torch.Tensor, f: int) -> torch.Tensor:
     return F.avg_pool2d(F.pad(x, (r, r, r, r), mode="replicate"), 2 * r + 1, stride=1)
 
 
-def noisy_band(base: torch.Tensor, noisy: torch.Tensor, f: int, clamp: float) -> torch.Tensor:
+def noisy_band(base: torch.Tensor, noisy: torch.Tensor, f: int, clamp: float,
+               exclude: float | None = None) -> torch.Tensor:
     """``(B, C, H, W)`` -> same: ``base`` with its coarse band (:func:`blur` at ``f``) replaced by the
     noisy mean's, each noisy pixel first clamped to ``clamp`` times the base's 3x3 maximum:
 
-        max(0, base - blur_f(base) + blur_f(min(noisy, clamp * max3x3(base))))
+        max(0, base + blur_f(m * (n - base)) / blur_f(m)),  n = min(noisy, clamp * max3x3(base))
+
+    where ``m`` is 1 everywhere (``exclude`` None: ``base - blur_f(base) + blur_f(n)``), or 0 at the
+    pixels whose base luminance exceeds ``exclude`` times its box mean (bright, sparse pixels: partly
+    covered small emitters, whose coverage noise the box would spread into halos; campaign 32, step 3).
 
     Why: a blur of the base keeps the base's own low-frequency bias (campaign 29's coarse candidates
     did not lower it), while the noisy mean's block means are unbiased and their noise falls with the
     box's area; the clamp keeps a few fireflies from deciding the band (campaign 32, step 2).
     With ``noisy == base`` it returns ``base`` (for ``clamp >= 1``)."""
     n = torch.minimum(noisy, clamp * max3x3(base.clamp_min(0)))
-    return (base - blur(base, f) + blur(n, f)).clamp_min(0)
+    if exclude is None:
+        return (base - blur(base, f) + blur(n, f)).clamp_min(0)
+    lum = _lum(base.clamp_min(0))
+    m = (lum <= exclude * blur(lum, f)).to(base.dtype)
+    # Where a box keeps no pixel, blur(m) and the numerator are both 0: the band is the base there.
+    return (base + blur(m * (n - base), f) / blur(m, f).clamp_min(1e-12)).clamp_min(0)
 
 
 def power_mean(x: torch.Tensor, r: int, p: int = POWER) -> torch.Tensor:
