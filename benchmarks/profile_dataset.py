@@ -34,6 +34,7 @@ def main() -> None:
     ap.add_argument("--spp", type=int, default=16)
     ap.add_argument("--seed", type=int, default=7)
     ap.add_argument("--top", type=int, default=40)
+    ap.add_argument("--rr-depth", type=int, default=5, help="Russian roulette depth of the procedural renders")
     ap.add_argument("--cornell", type=int, default=0, help="profile this many cornell-box renders instead")
     ap.add_argument("--warm", action="store_true",
                     help="keep the user's kernel cache (run twice: the second run has no compilation)")
@@ -55,7 +56,8 @@ def main() -> None:
                 cornell(i)
         else:
             cfg = DatasetConfig(count=a.count, seed=a.seed, spp=a.spp, ref_spp=0, width=a.size, height=a.size,
-                                objects=(10, 40), world=a.world, max_depth=8, views=a.views)
+                                objects=(10, 40), world=a.world, max_depth=8, views=a.views,
+                                rr_depth=a.rr_depth)
             render_dataset(Path(tmp) / "ds", cfg, progress=False)
 
     if a.cornell:

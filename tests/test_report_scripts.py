@@ -187,9 +187,53 @@ def test_results_block_drift_reads_the_committed_block_and_flags_worse_than_nois
     assert "+1.00%" in lm8 and "1.00e-02, 1.00e-02" in lm8, lm8
     kp4 = next(s for s in text.splitlines() if s.startswith("kpcn ") and " 4 |" in s)
     assert "0.00e+00, 0.00e+00" in kp4, kp4
-    assert "  wskp 16 spp: lamp PSNR 19.00 <= 20.00\n" in text and "worse than the noisy input" in text
+    assert "  wskp 16 spp: lamp_128x128_d8_spp16_seed7 PSNR 19.00 <= 20.00\n" in text and "worse than the noisy input" in text
     assert text.count(" spp: ") == 1, text  # the block's own models beat noisy in relMSE everywhere
     assert np.isfinite(means[("layer-medium", 16)][1])
+
+
+def _run_drift(drift, report: Path, section: str) -> str:
+    import contextlib
+    import io
+    import sys
+
+    out = io.StringIO()
+    argv, sys.argv = sys.argv, ["x", str(report), "--section", section]
+    try:
+        with contextlib.redirect_stdout(out):
+            drift.main()
+    finally:
+        sys.argv = argv
+    return out.getvalue()
+
+
+def test_results_block_drift_averages_every_seed_and_pairs_no_image_it_cannot_name(tmp_path: Path) -> None:
+    """Catches the six-seed mis-pairing of campaign 32: report rows keyed by scene, so the six seeds of a
+    scene overwrote each other, the "new" means were one seed's, and a seed-12 image was compared with the
+    seed-7 block's row (nan or wrong per-image drift); and the procedural block's repeated "proc" rows
+    read as one image."""
+    import numpy as np
+
+    drift = load_script("results_block_drift")
+    means, per = drift.parse_block(drift.block_lines(Path("docs/RESULTS.md"), "valscenes"))
+    scenes = sorted({im for (_, _, im) in per})
+    rows, values = [], []
+    for k, im in enumerate(scenes):
+        for seed in range(7, 13):
+            for m in ("noisy", "layer-medium"):
+                v = (1.0 if m == "noisy" else 0.01) * (k + 1) * seed
+                rows.append({"image": f"data/scene_inputs/{im}_128x128_d8_spp16_seed{seed}", "spp": 4, "method": m,
+                             "relmse": v, "psnr": 20.0 if m == "noisy" else 25.0})
+                if m == "layer-medium":
+                    values.append(v)
+    (tmp_path / "r.json").write_text(json.dumps({"rows": rows}))
+    text = _run_drift(drift, tmp_path / "r.json", "valscenes")
+    lm4 = next(s for s in text.splitlines() if s.startswith("layer-medium") and " 4 |" in s)
+    assert f"-> {np.mean(values):.4g} " in lm4 and "no image pairs" in lm4, lm4
+    assert "(0 of the report's 54 images paired" in text, text
+    # The procedural block's per-image rows are all "proc": none is taken as an image.
+    _, per_proc = drift.parse_block(drift.block_lines(Path("docs/RESULTS.md"), "procedural-test"))
+    assert not any(im == "proc" for (_, _, im) in per_proc)
 
 
 def test_dataset_fingerprint_compares_per_image_and_names_what_differs(tmp_path: Path, capsys) -> None:
