@@ -376,3 +376,33 @@ def test_loss_balance_ratios_and_powers_of_two(tmp_path: Path, monkeypatch, caps
     assert ratios[0] == 1.0 and ratios[3] == 1.0 and means[3] == means[0]
     for m, r in zip(means[1:3], ratios[1:3]):
         assert abs(r - means[0] / m) <= 1e-3 * r  # printed to 4 significant digits
+
+
+def test_per_sample_vs_pixel_averages_every_rendering_of_a_scene(tmp_path: Path, monkeypatch, capsys) -> None:
+    """Catches the six-seed collapse: rows keyed by scene alone, so each scene's last seed overwrote the
+    others, the printed means were one seed's (0.0890 for OIDN high where the report's mean over 54
+    renderings was 0.0981) and a scene's verdict was that seed's; and the scene taken from the whole path
+    ("data/scene" for every image under data/scene_inputs)."""
+    import csv
+    import sys
+
+    pvp = load_script("per_sample_vs_pixel")
+    values = {  # (scene, seed) -> relMSE of layer, kpcn-pixel, oidn-high: seed 8 alone would flip bathroom
+        ("bathroom", 7): (1.0, 3.0, 2.0), ("bathroom", 8): (1.0, 0.5, 0.5),
+        ("lamp", 7): (0.2, 0.1, 0.1), ("lamp", 8): (0.2, 0.1, 0.1),
+    }
+    path = tmp_path / "results.csv"
+    with open(path, "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=["image", "spp", "method", "relmse"])
+        w.writeheader()
+        for (sc, seed), vals in values.items():
+            for m, v in zip(("layer", "kpcn-pixel", "oidn-high"), vals):
+                w.writerow({"image": f"data/scene_inputs/{sc}_128x128_d8_spp16_seed{seed}", "spp": 4, "method": m,
+                            "relmse": v})
+    monkeypatch.setattr(sys, "argv", ["x", str(path), "--sample", "layer"])
+    pvp.main()
+    out = capsys.readouterr().out
+    assert "| bathroom | 4 | 0.57 | 0.80 |" in out, out  # 2.0 / 3.5 and 2.0 / 2.5: means over both seeds
+    assert "| lamp | 4 | 2.00 | 2.00 |" in out, out
+    assert "better than kpcn-pixel on 1, than OIDN high on 1 of 2 scenes (1 and 1 of 4 renderings" in out, out
+    assert "mean relMSE 0.6000)" in out and "kpcn-pixel 0.9250, OIDN high 0.6750" in out, out
