@@ -282,3 +282,80 @@ def test_context_preset_tiles_like_the_whole_image() -> None:
         whole = model(batch)
         assert tiled_error(rf) < 1e-9, "tiles differ from the whole image"
         assert tiled_error(rf - max(GLOW_RADII)) > 1e-6, "the context windows' reach did not matter: the test is blind"
+
+
+def _two_members() -> tuple[torch.nn.Module, torch.nn.Module]:
+    """Two one-head stages over one base (same seed), their heads moved apart from the identity start."""
+    a, b = _model(0).double().eval(), _model(0).double().eval()
+    with torch.no_grad():
+        for i, m in enumerate((a, b)):
+            g = torch.Generator().manual_seed(20 + i)
+            for p in m.net.parameters():
+                p.copy_(torch.randn(p.shape, generator=g, dtype=p.dtype) * 0.3)
+    return a, b
+
+
+def _ensemble_of(a: torch.nn.Module, b: torch.nn.Module) -> torch.nn.Module:
+    ens = _model(1, heads=2).double().eval()
+    state = {k: v for k, v in a.state_dict().items()}
+    state.update({f"extra_heads.0.{k.removeprefix('net.')}": v for k, v in b.state_dict().items() if k.startswith("net.")})
+    ens.load_state_dict(state, strict=True)
+    return ens
+
+
+def test_two_heads_give_the_mean_of_their_members_float64() -> None:
+    """Catches an ensemble that averages logits instead of softmax weights (not the members' mean
+    output, and no longer their convex combination), that reads one head twice, or that normalises by
+    the wrong count: its output must be the mean of the two one-head stages' outputs."""
+    a, b = _two_members()
+    ens = _ensemble_of(a, b)
+    batch = {k: v.double() for k, v in synthetic_batch(a, spp=4, height=16, width=16,
+                                                           generator=torch.Generator().manual_seed(10)).items()}
+    with torch.no_grad():
+        ya, yb, ye = a(batch), b(batch), ens(batch)
+    assert (ya - yb).abs().amax() > 1e-3  # the members differ, so the test can tell them apart
+    torch.testing.assert_close(ye, (ya + yb) / 2, rtol=1e-10, atol=1e-12)
+
+
+def test_every_head_of_an_ensemble_learns() -> None:
+    """Catches an extra head left out of the forward pass (its parameters would never train)."""
+    model = _model(heads=3).train()
+    batch = synthetic_batch(model, spp=3, height=16, width=16, generator=torch.Generator().manual_seed(11))
+    model(batch).square().mean().backward()
+    for i, net in enumerate([model.net, *model.extra_heads]):
+        assert all(p.grad is not None and bool(p.grad.abs().sum() > 0) for p in net.parameters()), f"head {i}"
+
+
+def test_ensemble_script_joins_members_over_one_base_and_refuses_another(tmp_path: Path) -> None:
+    """Catches a file whose second head is not the second member's, and an ensemble of heads trained
+    over different bases (its heads would read features of a base they never saw)."""
+    import dataclasses
+    import json
+
+    from safetensors.torch import save_file
+
+    from mcdenoise.models.weights import load_denoiser
+    from repo_scripts import load_script
+
+    def save(m: torch.nn.Module, name: str) -> str:
+        cfg = json.loads(json.dumps(dataclasses.asdict(m.config), default=list))
+        path = tmp_path / name
+        save_file({k: v.float().contiguous() for k, v in m.state_dict().items()}, str(path),
+                  metadata={"model": "refine", "preset": "small", "model_config": json.dumps(cfg)})
+        return str(path)
+
+    a, b = _two_members()
+    pa, pb = save(a, "a.safetensors"), save(b, "b.safetensors")
+    script = load_script("refine_ensemble")
+    tensors, meta = script.ensemble([pa, pb], "small")
+    assert json.loads(meta["model_config"])["heads"] == 2
+    dst = tmp_path / "ens.safetensors"
+    save_file(tensors, str(dst), metadata=meta)
+    ens, _ = load_denoiser(dst)
+    batch = synthetic_batch(ens, spp=4, height=16, width=16, generator=torch.Generator().manual_seed(12))
+    with torch.no_grad():
+        want = (a.float()(batch) + b.float()(batch)) / 2
+        torch.testing.assert_close(ens(batch), want, rtol=1e-5, atol=1e-6)
+    other = _model(5).eval()  # another seed: another base
+    with pytest.raises(ValueError, match="base tensor .* differs"):
+        script.ensemble([pa, save(other, "c.safetensors")], "small")

@@ -155,12 +155,21 @@ class Refine(Denoiser):
         k2 = k * k
         w = config.width
         n_in = N_FEATURES + (N_CONTEXT if config.context else 0)
-        self.net = UNet(n_in, len(self.dilations) * k2, [(w, w)] * config.levels, (w, w), [(w, w)] * config.levels)
-        with torch.no_grad():  # (nearly) the identity on the base output: its centre tap
-            self.net.final.bias.zero_()
-            self.net.final.weight.mul_(0.1)
-            s = config.start_logit
-            self.net.final.bias[k2 // 2] = s / (1 - s / LOGIT_BOUND)  # the raw value that soft-clips to s
+        if config.heads < 1:
+            raise ValueError(f"refine: heads must be >= 1, got {config.heads}")
+
+        def head() -> UNet:
+            net = UNet(n_in, len(self.dilations) * k2, [(w, w)] * config.levels, (w, w), [(w, w)] * config.levels)
+            with torch.no_grad():  # (nearly) the identity on the base output: its centre tap
+                net.final.bias.zero_()
+                net.final.weight.mul_(0.1)
+                s = config.start_logit
+                net.final.bias[k2 // 2] = s / (1 - s / LOGIT_BOUND)  # the raw value that soft-clips to s
+            return net
+
+        self.net = head()
+        # Further heads of an ensemble (config.heads); the first keeps its name, so one-head files load as before.
+        self.extra_heads = torch.nn.ModuleList([head() for _ in range(config.heads - 1)])
 
     def required_channels(self) -> list[str]:
         own = list(self.base.required_channels())
@@ -182,7 +191,7 @@ class Refine(Denoiser):
         return self.base.exposure_colour(batch)
 
     def conv_trunks(self) -> list[str]:
-        return ["net"] + [f"base.{n}" for n in self.base.conv_trunks()]
+        return ["net"] + [f"extra_heads.{i}" for i in range(len(self.extra_heads))] + [f"base.{n}" for n in self.base.conv_trunks()]
 
     def pixel_inputs(self, batch: dict[str, torch.Tensor]) -> tuple[torch.Tensor, ...]:
         """``(noisy, var_mean, albedo, normal)``, each (B, 3, H, W): the pixel means of the input and
@@ -207,9 +216,15 @@ class Refine(Denoiser):
         return out + [blur(base, int(f)) for f in self.config.coarse]
 
     def weights(self, feats: torch.Tensor) -> torch.Tensor:
-        """(B, n_candidates * k * k, H, W) softmax weights from the head's features."""
-        raw = self.net(feats).to(feats.dtype)
-        return torch.softmax(raw / (1 + raw.abs() / LOGIT_BOUND), dim=1)
+        """(B, n_candidates * k * k, H, W) softmax weights from the head's features (the mean over
+        the heads of an ensemble)."""
+        out = None
+        for net in [self.net, *self.extra_heads]:
+            raw = net(feats).to(feats.dtype)
+            w = torch.softmax(raw / (1 + raw.abs() / LOGIT_BOUND), dim=1)
+            out = w if out is None else out + w
+        assert out is not None
+        return out / (1 + len(self.extra_heads))
 
     def _stage_inputs(self, batch: dict[str, torch.Tensor]) -> tuple[torch.Tensor, ...]:
         """``(features, base, noisy, emitter mask or None)``: the head's input (B, N_FEATURES, H, W)
@@ -250,11 +265,16 @@ def _layer_medium_ctx() -> RefineConfig:
     return RefineConfig(base="layer:medium", context=True)
 
 
+def _layer_medium_ctx_x2() -> RefineConfig:
+    return RefineConfig(base="layer:medium", context=True, heads=2)
+
+
 register_model(
     "refine",
     config_cls=RefineConfig,
     presets={"small": lambda: RefineConfig(), "paper": lambda: RefineConfig(width=32, levels=3),
-             "layer_medium": _layer_medium, "layer_medium_ctx": _layer_medium_ctx},
+             "layer_medium": _layer_medium, "layer_medium_ctx": _layer_medium_ctx,
+             "layer_medium_ctx_x2": _layer_medium_ctx_x2},
     paper=_PAPER,
     description="a frozen base model (layer-medium), then per-pixel softmax 5x5 taps over its output, the clamped "
                 "noisy mean and the output blurred at 2x and 4x",

@@ -50,6 +50,13 @@ class RefineConfig:
     25x25. Why: campaign 29's head, reading per-pixel statistics only, smoothed the isolated outliers of dim
     rooms (third-party relMSE 0.62x layer-medium at the pixel scale) but lost 0.05-0.11 dB of held-out PSNR on
     the images with small bright emitters and nothing on the others: it could not tell the two apart."""
+    heads: int = 1
+    """Heads over the one frozen base; their softmax weights are averaged, which is the average of
+    their outputs (the taps are linear in the weights), so a convex kernel stays one. Why: two training
+    seeds of one recipe (campaign 33) differed by 9.6% in third-party relMSE and 0.014 dB of held-out
+    PSNR, as much as the effects being judged; a head is 30k parameters and the base runs once, so an
+    ensemble of seeds costs little. Made from trained one-head files by ``scripts/refine_ensemble.py``:
+    the first head keeps the name ``net``, the others are ``extra_heads.i``."""
     autoexposure: float | None = 0.18
     """Key of the features' exposure scale when the base has none (the base's key otherwise, so that
     tiled inference gives both one scale)."""
