@@ -8,6 +8,12 @@ Each member is a one-head refine run folder or .safetensors. They must agree on 
 field and hold bit-identical bases (the same start file: ``scripts/refine_init.py``), else the script
 refuses with one line naming the file. The first member's head keeps the name ``net``; member i + 1's
 becomes ``extra_heads.i``. Prints what it wrote; refuses a file that would not load back.
+
+``--run DIR`` also writes a run folder that ``python -m mcdenoise.models.ship`` reads (the members must
+then be run folders): the first member's config.json with the ensemble's preset and model_config and
+the list of members, and a result.json whose wall and CPU seconds are the members' sums (the
+ensemble itself trains nothing). The card's training command is then the first member's; the true
+recipe (every member's command, then this script) goes in its note.
 """
 from __future__ import annotations
 
@@ -68,14 +74,45 @@ def ensemble(members: list[str], preset: str) -> tuple[dict[str, torch.Tensor], 
     return out, meta
 
 
+def write_run(run: Path, members: list[str], tensors: dict[str, torch.Tensor], meta: dict[str, str]) -> None:
+    """The ensemble as a run folder: model.safetensors, config.json and result.json (module docstring)."""
+    dirs = [Path(m) for m in members]
+    if not all((d / "config.json").is_file() and (d / "result.json").is_file() for d in dirs):
+        raise ValueError("--run needs run folders with config.json and result.json as members")
+    docs = [json.loads((d / "config.json").read_text()) for d in dirs]
+    results = [json.loads((d / "result.json").read_text()) for d in dirs]
+    if any(r.get("wall_s") != r.get("wall_s_this_call") for r in results):
+        raise ValueError("a member run was resumed: its CPU seconds are not all in its result.json")
+    config = dict(docs[0])
+    config["train"] = {**docs[0]["train"], "preset": meta["preset"]}
+    config["model_config"] = json.loads(meta["model_config"])
+    members_doc = [{"run": str(d), "seed": doc["train"].get("seed"), "data": doc["train"].get("data"),
+                    "cpu_s": r.get("cpu_s_this_call"), "wall_s": r.get("wall_s")} for d, doc, r in zip(dirs, docs, results)]
+    config["ensemble_of"] = members_doc
+    result = {"model": "refine", "preset": meta["preset"], "steps": results[0].get("steps"), "skipped": 0,
+              "device": results[0].get("device"), "world_size": 1,
+              "wall_s": sum(r["wall_s"] for r in results), "wall_s_this_call": sum(r["wall_s"] for r in results),
+              "cpu_s_this_call": sum(r["cpu_s_this_call"] for r in results), "val": None, "ensemble_of": members_doc}
+    run.mkdir(parents=True, exist_ok=True)
+    with atomic_file(run / "model.safetensors") as tmp:
+        save_file({k: v.contiguous() for k, v in tensors.items()}, str(tmp), metadata={**meta, "step": str(result["steps"])})
+    for name, doc in (("config.json", config), ("result.json", result)):
+        with atomic_file(run / name) as tmp:
+            tmp.write_text(json.dumps(doc, indent=1) + "\n")
+    load_denoiser(run)  # refuses a folder that would not load back
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("dst", type=Path)
     ap.add_argument("members", nargs="+", help="one-head refine run folders or .safetensors files")
     ap.add_argument("--preset", default="layer_medium_ctx_x2")
+    ap.add_argument("--run", type=Path, help="also write this run folder for mcdenoise.models.ship")
     a = ap.parse_args()
     try:
         tensors, meta = ensemble(a.members, a.preset)
+        if a.run is not None:
+            write_run(a.run, a.members, tensors, meta)
     except (ValueError, OSError, KeyError) as e:
         sys.exit(f"refine_ensemble: error: {e}")
     with atomic_file(a.dst) as tmp:

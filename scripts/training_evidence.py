@@ -64,9 +64,13 @@ def chain_dataset_mp(st: list[dict[str, Any]]) -> float:
 
 
 def seen_mp(cmd: str | None, steps: float | None = None) -> float:
-    """Megapixels of crops a `mcdenoise train` command draws (steps x batch x crop^2)."""
+    """Megapixels of crops a `mcdenoise train` command draws (steps x batch x crop^2); a card whose
+    command holds several trainings (the members of an ensemble, campaign 33) counts each."""
     if not cmd:
         return 0.0
+    runs = [c for c in cmd.split("mcdenoise train")[1:]]
+    if len(runs) > 1:
+        return sum(seen_mp("mcdenoise train" + c) for c in runs)
     s = steps if steps is not None else _flag(cmd, "--steps", DEFAULTS["--steps"])
     return s * _flag(cmd, "--batch", DEFAULTS["--batch"]) * _flag(cmd, "--crop", DEFAULTS["--crop"]) ** 2 / 1e6
 

@@ -359,3 +359,19 @@ def test_ensemble_script_joins_members_over_one_base_and_refuses_another(tmp_pat
     other = _model(5).eval()  # another seed: another base
     with pytest.raises(ValueError, match="base tensor .* differs"):
         script.ensemble([pa, save(other, "c.safetensors")], "small")
+    # As a run folder for the ship tool: the members' CPU seconds summed, the ensemble's config, loads back.
+    runs = []
+    for i, path in enumerate((pa, pb)):
+        d = tmp_path / f"run{i}"
+        d.mkdir()
+        Path(path).rename(d / "model.safetensors")
+        cfg = json.loads(meta["model_config"]) | {"heads": 1}
+        (d / "config.json").write_text(json.dumps({"train": {"model": "refine", "preset": "small", "seed": i, "data": "x"},
+                                                   "model_config": cfg}))
+        (d / "result.json").write_text(json.dumps({"steps": 5, "wall_s": 10.0, "wall_s_this_call": 10.0,
+                                                   "cpu_s_this_call": 20.0 + i, "device": "cpu"}))
+        runs.append(str(d))
+    script.write_run(tmp_path / "ens", runs, *script.ensemble(runs, "small"))
+    assert json.loads((tmp_path / "ens" / "result.json").read_text())["cpu_s_this_call"] == 41.0
+    model, info = load_denoiser(tmp_path / "ens")
+    assert info["preset"] == "small" and model.config.heads == 2

@@ -406,3 +406,13 @@ def test_per_sample_vs_pixel_averages_every_rendering_of_a_scene(tmp_path: Path,
     assert "| lamp | 4 | 2.00 | 2.00 |" in out, out
     assert "better than kpcn-pixel on 1, than OIDN high on 1 of 2 scenes (1 and 1 of 4 renderings" in out, out
     assert "mean relMSE 0.6000)" in out and "kpcn-pixel 0.9250, OIDN high 0.6750" in out, out
+
+
+def test_training_evidence_counts_the_crops_of_every_member_of_an_ensemble() -> None:
+    """Catches a card whose command holds two trainings (refine-layer_medium_ctx_x2's members) counted
+    as one: its seen megapixels would be half of what trained it."""
+    ev = load_script("training_evidence")
+    one = "mcdenoise train --model refine --data d --steps 800 --batch 8 --crop 96"
+    assert ev.seen_mp(one) == 800 * 8 * 96 * 96 / 1e6
+    two = f"{one}  # seed 0; then  {one} --seed 1  # seed 1; then  python scripts/refine_ensemble.py a b c"
+    assert ev.seen_mp(two) == 2 * ev.seen_mp(one)

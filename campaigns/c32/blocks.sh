@@ -1,8 +1,8 @@
 #!/bin/bash
 # Committed copy of the script that ran as logs/c32_blocks.sh (campaign 32, step 1). Run from the repo root.
-# Regenerate the three RESULTS.md blocks with refine-layer_medium_ctx (c31 leg F) shipped.
+# Regenerate the three RESULTS.md blocks with refine-layer_medium_ctx (c31 leg F) shipped; M="..." names other models (campaign 33).
 set -x
-M="kpcn kpcn-pixel sbmc layer layer-medium refine-layer_medium_ctx wskp combine-ens combine-ens_kpcn combine-kpcn combine-own"
+M=${M:-"kpcn kpcn-pixel sbmc layer layer-medium refine-layer_medium_ctx wskp combine-ens combine-ens_kpcn combine-kpcn combine-own"}
 date
 time .venv/bin/mcdenoise eval --models $M --data data/test --threads 1 --spp 4 8 16 --out reports/test --no-classic --oidn high fast high-pf --no-progress --results-md docs/RESULTS.md --section procedural-test
 date
