@@ -269,12 +269,16 @@ def _layer_medium_ctx_x2() -> RefineConfig:
     return RefineConfig(base="layer:medium", context=True, heads=2)
 
 
+def _layer_medium_ctx_x3() -> RefineConfig:
+    return RefineConfig(base="layer:medium", context=True, heads=3)
+
+
 register_model(
     "refine",
     config_cls=RefineConfig,
     presets={"small": lambda: RefineConfig(), "paper": lambda: RefineConfig(width=32, levels=3),
              "layer_medium": _layer_medium, "layer_medium_ctx": _layer_medium_ctx,
-             "layer_medium_ctx_x2": _layer_medium_ctx_x2},
+             "layer_medium_ctx_x2": _layer_medium_ctx_x2, "layer_medium_ctx_x3": _layer_medium_ctx_x3},
     paper=_PAPER,
     description="a frozen base model (layer-medium), then per-pixel softmax 5x5 taps over its output, the clamped "
                 "noisy mean and the output blurred at 2x and 4x",
