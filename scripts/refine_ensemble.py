@@ -41,6 +41,16 @@ def _read(path: Path) -> tuple[dict[str, str], dict[str, torch.Tensor]]:
         return dict(f.metadata() or {}), {k: f.get_tensor(k) for k in f.keys()}
 
 
+def _full(cfg: dict) -> dict:
+    """``cfg`` with every field it leaves out at RefineConfig's default (a file saved before a field
+    existed, e.g. ``heads``, means the default), as JSON reads it back."""
+    from dataclasses import asdict
+
+    from mcdenoise.models.refine_config import RefineConfig
+
+    return json.loads(json.dumps({**asdict(RefineConfig()), **cfg}, default=list))
+
+
 def ensemble(members: list[str], preset: str) -> tuple[dict[str, torch.Tensor], dict[str, str]]:
     """Tensors and metadata of the ensemble of ``members`` (ValueError naming the member that differs)."""
     if len(members) < 2:
@@ -54,7 +64,7 @@ def ensemble(members: list[str], preset: str) -> tuple[dict[str, torch.Tensor], 
     for i, f in enumerate(files[1:]):
         meta, ten = _read(f)
         cfg = json.loads(meta.get("model_config", "{}"))
-        if meta.get("model") != "refine" or cfg != cfg0:
+        if meta.get("model") != "refine" or _full(cfg) != _full(cfg0):
             raise ValueError(f"{f}: its model or configuration differs from {files[0]}'s")
         if set(ten) != set(ten0):
             raise ValueError(f"{f}: tensor names differ from {files[0]}'s")

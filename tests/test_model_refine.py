@@ -332,6 +332,7 @@ def test_ensemble_script_joins_members_over_one_base_and_refuses_another(tmp_pat
     import dataclasses
     import json
 
+    from safetensors import safe_open
     from safetensors.torch import save_file
 
     from mcdenoise.models.weights import load_denoiser
@@ -347,6 +348,14 @@ def test_ensemble_script_joins_members_over_one_base_and_refuses_another(tmp_pat
     a, b = _two_members()
     pa, pb = save(a, "a.safetensors"), save(b, "b.safetensors")
     script = load_script("refine_ensemble")
+    # A member saved before the heads field existed (no "heads" in its config) is the same configuration.
+    old = tmp_path / "old.safetensors"
+    with safe_open(pa, "pt") as h:
+        cfg = json.loads(h.metadata()["model_config"])
+        tensors0 = {k: h.get_tensor(k) for k in h.keys()}
+    cfg.pop("heads")
+    save_file(tensors0, str(old), metadata={"model": "refine", "preset": "small", "model_config": json.dumps(cfg)})
+    script.ensemble([str(old), pb], "small")
     tensors, meta = script.ensemble([pa, pb], "small")
     assert json.loads(meta["model_config"])["heads"] == 2
     dst = tmp_path / "ens.safetensors"
