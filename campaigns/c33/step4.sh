@@ -6,7 +6,7 @@ cd "$(dirname "$0")/../.."
 MC=${MC:-.venv/bin/mcdenoise}; PY=${PY:-.venv/bin/python}; L=campaigns/c33/logs
 HELD=(data/detail_ref data/detail_ref2 data/rich_ref3 data/rich_val)
 CAND=runs/refine_ens3_c33.safetensors SHIPPED=refine-layer_medium_ctx_x2
-$PY scripts/refine_ensemble.py $CAND campaigns/c30/refine_c30a campaigns/c33/refine_c33l runs/refine_c33m --preset layer_medium_ctx_x3
+$PY scripts/refine_ensemble.py $CAND campaigns/c30/refine_c30a campaigns/c33/refine_c33l campaigns/c33/refine_c33m --preset layer_medium_ctx_x3
 $PY scripts/consistency_probe.py "${HELD[@]}" --models $SHIPPED $CAND layer-medium --spp 4 8 16 --ks 4 > $L/x3_probe.log 2>&1
 $PY scripts/brightness_by_quartile.py "${HELD[@]}" --models $SHIPPED $CAND --spp 4 --summary > $L/x3_brightness.log 2>&1
 $MC eval --models $SHIPPED $CAND --data data/scene_inputs --spp 4 8 16 --no-classic --oidn high --threads 2 \
