@@ -23,22 +23,12 @@ import sys
 from pathlib import Path
 
 import torch
-from safetensors import safe_open
 from safetensors.torch import save_file
 
+from average_weights import _weights_file  # scripts/ is on the path when a script runs
 from mcdenoise.io.safety import atomic_file
 from mcdenoise.models.weights import load_denoiser, model_from_config
-
-
-def _weights_file(path: str) -> Path:
-    """A .safetensors file, or a run folder's model.safetensors."""
-    p = Path(path)
-    return p / "model.safetensors" if p.is_dir() else p
-
-
-def _read(path: Path) -> tuple[dict[str, str], dict[str, torch.Tensor]]:
-    with safe_open(str(path), "pt") as f:
-        return dict(f.metadata() or {}), {k: f.get_tensor(k) for k in f.keys()}
+from reconfigure_weights import read_weights
 
 
 def _full(cfg: dict) -> dict:
@@ -56,13 +46,13 @@ def ensemble(members: list[str], preset: str) -> tuple[dict[str, torch.Tensor], 
     if len(members) < 2:
         raise ValueError("an ensemble needs at least two members")
     files = [_weights_file(m) for m in members]
-    meta0, ten0 = _read(files[0])
+    meta0, ten0 = read_weights(str(files[0]))
     cfg0 = json.loads(meta0.get("model_config", "{}"))
     if meta0.get("model") != "refine" or int(cfg0.get("heads", 1)) != 1:
         raise ValueError(f"{files[0]}: not a one-head refine file")
     out = dict(ten0)
     for i, f in enumerate(files[1:]):
-        meta, ten = _read(f)
+        meta, ten = read_weights(str(f))
         cfg = json.loads(meta.get("model_config", "{}"))
         if meta.get("model") != "refine" or _full(cfg) != _full(cfg0):
             raise ValueError(f"{f}: its model or configuration differs from {files[0]}'s")

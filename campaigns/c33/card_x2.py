@@ -24,8 +24,9 @@ runs = ["campaigns/c30/refine_c30a", "campaigns/c33/refine_c33l"]
 cmds = [train_command(json.loads(Path(r, "config.json").read_text()), f"runs/{Path(r).name}") for r in runs]
 t["command"] = (f"{cmds[0]}  # seed 0; then  {cmds[1]}  # seed 1; then  python scripts/refine_ensemble.py "
                 "runs/refine_ens_c33.safetensors runs/refine_c30a runs/refine_c33l --run runs/refine_ens_c33")
-t["machine"] = ("two members: seed 0 on an AMD EPYC (campaign 30, 51.7 CPU-min), seed 1 on an Intel(R) Xeon(R) "
-                "Processor, 2 cores, AVX512-BF16, AMX (campaign 33, 32.0 CPU-min); cpu_s is their sum")
+cpu_min = [json.loads(Path(r, "result.json").read_text())["cpu_s_this_call"] / 60 for r in runs]
+t["machine"] = (f"two members: seed 0 on an AMD EPYC (campaign 30, {cpu_min[0]:.1f} CPU-min), seed 1 on an Intel(R) Xeon(R) "
+                f"Processor, 2 cores, AVX512-BF16, AMX (campaign 33, {cpu_min[1]:.1f} CPU-min); cpu_s is their sum")
 t["init"] = ctx["training"]["init"]
 t["note"] = ("campaign 33, step 3 (docs/TRAINING.md, 'Campaign 33'): the output ensemble (RefineConfig.heads = 2, softmax "
              "weights averaged) of two training seeds of campaign 30's leg A recipe (bash campaigns/c30/leg_a.sh; "

@@ -218,13 +218,11 @@ class Refine(Denoiser):
     def weights(self, feats: torch.Tensor) -> torch.Tensor:
         """(B, n_candidates * k * k, H, W) softmax weights from the head's features (the mean over
         the heads of an ensemble)."""
-        out = None
+        ws = []
         for net in [self.net, *self.extra_heads]:
             raw = net(feats).to(feats.dtype)
-            w = torch.softmax(raw / (1 + raw.abs() / LOGIT_BOUND), dim=1)
-            out = w if out is None else out + w
-        assert out is not None
-        return out / (1 + len(self.extra_heads))
+            ws.append(torch.softmax(raw / (1 + raw.abs() / LOGIT_BOUND), dim=1))
+        return ws[0] if len(ws) == 1 else sum(ws[1:], ws[0]) / len(ws)
 
     def _stage_inputs(self, batch: dict[str, torch.Tensor]) -> tuple[torch.Tensor, ...]:
         """``(features, base, noisy, emitter mask or None)``: the head's input (B, N_FEATURES, H, W)
