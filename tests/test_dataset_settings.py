@@ -211,3 +211,38 @@ def test_small_emitter_rate_reaches_the_generator_and_the_recipe(tmp_path: Path,
         with pytest.raises(Exception, match="small_emitters"):
             DatasetConfig(**{**base.__dict__, **bad}).check()
     DatasetConfig(**{**base.__dict__, "small_emitters": 0.0}).check()
+
+
+def test_strong_dof_reaches_the_generator_and_the_recipe(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Bug caught: ``--strong-dof`` parsed but not passed to the generator (the dataset would
+    silently keep the ordinary lens), a recipe that drops it, a manifest hash blind to it, an old
+    dataset.json that gains the key (its manifest hash would change), or a rate out of [0, 1]."""
+    import mcdenoise.render.procedural as procedural
+    from mcdenoise.render.procedural_image import render_procedural_image
+
+    assert _parse("mcdenoise dataset --out d --count 2 --strong-dof 0.5").strong_dof == 0.5
+    seen: dict = {}
+
+    class Drawn(Exception):
+        pass
+
+    def fake_generate(seed: int, **kw: object) -> None:
+        seen.update(kw)
+        raise Drawn
+
+    monkeypatch.setattr(procedural, "generate", fake_generate)
+    with pytest.raises(Drawn):
+        render_procedural_image(DatasetConfig(count=1, world="detailed", strong_dof=0.5, views=2), tmp_path, 0,
+                                ["proc_000000/view_000"])
+    assert seen["strong_dof"] == 0.5
+    base = DatasetConfig(count=3, spp=4, variant="llvm_ad_rgb", world="detailed")
+    a = _dataset(tmp_path / "a", base)
+    b = _dataset(tmp_path / "b", DatasetConfig(**{**base.__dict__, "strong_dof": 0.5}))
+    assert "strong_dof" not in json.loads((a / "dataset.json").read_text())
+    assert manifest_hash(a) != manifest_hash(b)
+    assert _parse(dataset_command(b)).strong_dof == 0.5
+    assert "--strong-dof" not in dataset_command(a)
+    for bad in (1.5, -0.1, True):
+        with pytest.raises(Exception, match="strong_dof"):
+            DatasetConfig(**{**base.__dict__, "strong_dof": bad}).check()
+    DatasetConfig(**{**base.__dict__, "strong_dof": 0.0, "world": "classic"}).check()  # any world has a lens

@@ -178,11 +178,14 @@ def test_rejected_scene_is_redrawn_from_derived_seed(monkeypatch: pytest.MonkeyP
 
     calls: list[int] = []
     rates: list[float | None] = []
+    lenses: list[float | None] = []
 
     def fake_draw(seed: int, kind: str | None, w: int, h: int, objects: tuple[int, int],
-                  world: str = "classic", small_emitters: float | None = None) -> P.ProceduralScene:
+                  world: str = "classic", small_emitters: float | None = None,
+                  strong_dof: float | None = None) -> P.ProceduralScene:
         calls.append(seed)
         rates.append(small_emitters)
+        lenses.append(strong_dof)
         ps = P.ProceduralScene(scene={"sky": {"type": "envmap", "scale": 1.0}}, seed=seed, drawn_seed=seed,
                                attempts=0, kind="outdoor", camera_to_world=np.eye(4), fov=40.0,
                                aperture_radius=0.0, focus_distance=1.0, depth_of_field=False,
@@ -204,8 +207,9 @@ def test_rejected_scene_is_redrawn_from_derived_seed(monkeypatch: pytest.MonkeyP
     assert rates == [None] * 3
     rates.clear()
     calls.clear()
-    P.generate(42, small_emitters=0.25)  # every redraw keeps the dataset's rate
-    assert rates == [0.25] * 3
+    lenses.clear()
+    P.generate(42, small_emitters=0.25, strong_dof=0.5)  # every redraw keeps the dataset's rates
+    assert rates == [0.25] * 3 and lenses == [0.5] * 3
     # Exposure: emitters scaled so that the median lands on the random target in [0.05, 0.5].
     k = ps.info["emitter_scale"]
     assert ps.scene["sky"]["scale"] == pytest.approx(k)

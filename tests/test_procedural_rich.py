@@ -84,3 +84,36 @@ def test_small_emitter_rate_drops_only_the_small_emitters() -> None:
             kept += half.info["rich"]["small_emitters"] == n
             dropped += half.info["rich"].get("small_emitters_dropped", 0) == n
     assert kept + dropped >= 20 and min(kept, dropped) >= 0.2 * (kept + dropped), (kept, dropped)
+
+
+def test_wide_lens_changes_only_the_lens() -> None:
+    """Catches a ``strong_dof`` rate that changes anything but the sensor (the data would differ in
+    more than the one property the option names), a default (None) or rate 0 that changes any draw
+    (every dataset made before the option would change), a wide lens weaker than the ordinary one
+    (the option would add nothing), one that is not focused near the subject, and a rate that is
+    not a probability per scene."""
+    from mcdenoise.render.procedural.camera import WIDE_LENS_BLUR
+
+    wide = 0
+    for s in range(30):
+        base = P._draw(s, None, 32, 32, (10, 20), "detailed")
+        assert "wide_lens" not in base.info
+        zero = P._draw(s, None, 32, 32, (10, 20), "detailed", None, 0.0)
+        assert P.scene_digest(zero.scene) == P.scene_digest(base.scene) and zero.info["wide_lens"] is False
+        one = P._draw(s, None, 32, 32, (10, 20), "detailed", None, 1.0)
+        assert sorted(one.scene) == sorted(base.scene)
+        for k in one.scene:
+            if k != "sensor":
+                assert P.scene_digest({"x": one.scene[k]}) == P.scene_digest({"x": base.scene[k]}), (s, k)
+        sensor = one.scene["sensor"]
+        assert sensor["type"] == "thinlens" and one.depth_of_field and one.info["wide_lens"] is True
+        assert {k: v for k, v in sensor.items() if k not in ("type", "aperture_radius", "focus_distance")} == \
+            {k: v for k, v in base.scene["sensor"].items() if k not in ("type", "aperture_radius", "focus_distance")}
+        target = float(np.linalg.norm(one.camera_path[1] - one.camera_path[0]))
+        assert 0.85 * target <= one.focus_distance <= 1.1 * target
+        k = one.aperture_radius / (one.focus_distance * np.tan(np.radians(one.fov) / 2))
+        assert WIDE_LENS_BLUR[0] * (1 - 1e-9) <= k <= WIDE_LENS_BLUR[1] * (1 + 1e-9)
+        if base.depth_of_field:  # the ordinary lens blurs infinity by at most 0.08 of the half-width
+            assert base.aperture_radius / (base.focus_distance * np.tan(np.radians(base.fov) / 2)) <= 0.08 + 1e-9
+        wide += P._draw(s, None, 32, 32, (10, 20), "detailed", None, 0.5).info["wide_lens"]
+    assert 6 <= wide <= 24, wide

@@ -60,6 +60,9 @@ def add_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--small-emitters", type=float, default=None, metavar="P",
                    help="rich and detailed worlds: probability that a scene keeps the small bright emitters it "
                         "drew, the rest of it unchanged (default: all kept; docs/DATASETS.md)")
+    p.add_argument("--strong-dof", type=float, default=None, metavar="P",
+                   help="probability that a scene is shot through a wide lens, its subject in focus and the "
+                        "rest blurred by up to a few %% of the width (default: never; docs/DATASETS.md)")
     p.add_argument("--generator", type=int, default=None,
                    help="scene pipeline version (default: the latest; a dataset made by an older one names it "
                         "in dataset.json, and its recipe states it)")
@@ -126,6 +129,7 @@ def run(args: argparse.Namespace) -> int:
         count=args.count, seed=args.seed, spp=args.spp, ref_spp=args.ref_spp, width=w, height=h,
         frames=args.frames, max_depth=args.max_depth, rr_depth=args.rr_depth, kind=args.kind, fractions=parse_split(args.split),
         objects=parse_objects(args.objects), views=args.views, world=args.world, small_emitters=args.small_emitters,
+        strong_dof=args.strong_dof,
         variant=variant, **({} if args.generator is None else {"generator": args.generator}),
     )
     splits = None if args.only_split is None else [s.strip() for s in args.only_split.split(",")]

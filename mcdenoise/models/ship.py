@@ -82,6 +82,8 @@ def dataset_command(data_dir: str | Path) -> str:
         args += ["--world", d["world"]]
     if d.get("small_emitters") is not None:
         args += ["--small-emitters", f"{d['small_emitters']:g}"]
+    if d.get("strong_dof") is not None:
+        args += ["--strong-dof", f"{d['strong_dof']:g}"]
     lo, hi = d.get("objects", [10, 50])
     if [lo, hi] != [10, 50]:
         args += ["--objects", f"{lo}-{hi}"]

@@ -84,6 +84,9 @@ class DatasetConfig:
         small_emitters: probability that a scene of the rich or detailed world keeps the small
             bright emitters it drew (docs/DATASETS.md); None: all kept. Recorded only when set,
             so every dataset made before the field keeps its dataset.json and manifest.
+        strong_dof: probability that a scene is shot through a wide lens (a blur of 3-19 px at
+            infinity for 128 px, the subject in focus; docs/DATASETS.md); None: never. Recorded only
+            when set, as ``small_emitters``.
     """
 
     count: int
@@ -103,6 +106,7 @@ class DatasetConfig:
     variant: str | None = None
     rr_depth: int = 5
     small_emitters: float | None = None
+    strong_dof: float | None = None
 
     def check(self) -> None:
         from mcdenoise.render.procedural import KINDS
@@ -132,6 +136,9 @@ class DatasetConfig:
                 raise SceneError(f"dataset: small_emitters={p!r} must be a probability in [0, 1]")
             if self.world == "classic":
                 raise SceneError("dataset: small_emitters needs the rich or detailed world (the classic world has none)")
+        p = self.strong_dof
+        if p is not None and (isinstance(p, bool) or not isinstance(p, (int, float)) or not 0 <= p <= 1):
+            raise SceneError(f"dataset: strong_dof={p!r} must be a probability in [0, 1]")
         if self.kind is not None and self.kind not in KINDS:
             raise SceneError(f"dataset: kind {self.kind!r} is not one of {', '.join(KINDS)}")
         lo, hi = self.objects
@@ -149,8 +156,9 @@ class DatasetConfig:
             del d["variant"]
         if d["rr_depth"] == 5:  # the default before the field existed: not recorded, as above
             del d["rr_depth"]
-        if d["small_emitters"] is None:  # not recorded, as above
-            del d["small_emitters"]
+        for key in ("small_emitters", "strong_dof"):
+            if d[key] is None:  # not recorded, as above
+                del d[key]
         return {"format": "mcdenoise-procedural-dataset", "version": 1, **d}
 
     def settings(self) -> dict[str, Any]:

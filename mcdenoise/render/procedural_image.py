@@ -210,11 +210,11 @@ def render_procedural_image(
         def preview0(ps: Any) -> tuple[Any, int]:
             return check_settings(cfg, view0(ps), first_view=True)
         ps = generate(scene_seed, kind=cfg.kind, width=cfg.width, height=cfg.height, objects=tuple(cfg.objects), world=cfg.world,
-                      small_emitters=cfg.small_emitters,
+                      small_emitters=cfg.small_emitters, strong_dof=cfg.strong_dof,
                       settings=preview0, keep_loaded=True, stack=stacked(cfg))
     else:
         ps = generate(scene_seed, kind=cfg.kind, width=cfg.width, height=cfg.height, objects=tuple(cfg.objects), world=cfg.world,
-                      small_emitters=cfg.small_emitters,
+                      small_emitters=cfg.small_emitters, strong_dof=cfg.strong_dof,
                       settings=_settings(cfg, derive_seed(scene_seed, 0, 1)), record_position=True, keep_loaded=True)
     t1 = time.perf_counter()
     scene = ps.loaded

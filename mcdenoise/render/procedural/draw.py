@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from mcdenoise.errors import SceneError
-from mcdenoise.render.procedural.camera import _sensor
+from mcdenoise.render.procedural.camera import _sensor, _wide_lens
 from mcdenoise.render.procedural.detail import Detailer
 from mcdenoise.render.procedural.indoor import _indoor
 from mcdenoise.render.procedural.objects import MAX_OBJECTS, MIN_OBJECTS, _Builder
@@ -28,14 +28,18 @@ KINDS = ("indoor", "outdoor")
 
 def _draw(
     seed: int, kind: str | None, width: int, height: int, objects: tuple[int, int] = (MIN_OBJECTS, MAX_OBJECTS),
-    world: str = "classic", small_emitters: float | None = None,
+    world: str = "classic", small_emitters: float | None = None, strong_dof: float | None = None,
 ) -> ProceduralScene:
     """Draw one scene from ``seed`` without any check; ``world`` is ``classic``, ``rich``
     (:mod:`~mcdenoise.render.procedural.rich`) or ``detailed`` (rich plus
     :mod:`~mcdenoise.render.procedural.detail`), each addition drawn from a stream of its own.
 
     ``small_emitters``: the probability that a rich or detailed scene keeps the small bright
-    emitters it drew (decided from a stream of its own); None keeps them all, as before the option."""
+    emitters it drew (decided from a stream of its own); None keeps them all, as before the option.
+
+    ``strong_dof``: the probability that the scene is shot through a wide lens instead
+    (:func:`~mcdenoise.render.procedural.camera._wide_lens`, decided and drawn from a stream of its
+    own, so the scene is otherwise the one drawn without it); None: never, as before the option."""
     if world not in WORLDS:
         raise SceneError(f"unknown procedural world {world!r}; worlds: {', '.join(WORLDS)}")
     rng = np.random.default_rng(seed)
@@ -58,6 +62,12 @@ def _draw(
         assert rich is not None
         rich["detail"] = detailer.finish(b.scene)
     sensor, aperture, focus = _sensor(b, cam, width, height, dof)
+    wide = False
+    if strong_dof is not None:
+        lens_rng = np.random.default_rng(derive_seed(seed, 0xD0F5))
+        if lens_rng.random() < strong_dof:
+            wide = dof = True
+            aperture, focus = _wide_lens(sensor, cam, lens_rng)
     cam_close = None
     obj_motion: dict[str, list[float]] = {}
     shutter = (0.0, 0.0)
@@ -86,6 +96,7 @@ def _draw(
         "textures": dict(sorted(b.textures.items())),
         "shapes": dict(sorted(b.shapes.items())),
         "depth_of_field": dof,
+        **({"wide_lens": wide} if strong_dof is not None else {}),
         "motion_blur": motion,
         "moving_objects": len(obj_motion),
         "camera_motion": cam_close is not None,

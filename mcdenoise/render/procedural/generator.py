@@ -43,12 +43,14 @@ def generate(
     world: str = "classic",
     stack: bool = False,
     small_emitters: float | None = None,
+    strong_dof: float | None = None,
 ) -> ProceduralScene:
     """Draw a scene from ``seed``; with ``check``, re-draw rejected ones from derived seeds.
 
     ``world``: ``classic`` (the original generator) or ``rich`` (windows, small bright emitters,
     night, a wider exposure range: :mod:`~mcdenoise.render.procedural.rich`). ``small_emitters``:
     the probability that a rich scene keeps its small bright emitters (None: always).
+    ``strong_dof``: the probability that a scene is shot through a wide lens (None: never).
 
     ``width``/``height`` set the film in the dict. ``objects`` is the (min, max) number of
     objects: indoor scenes count their furniture pieces in it when there is room. JIT compilation
@@ -68,7 +70,7 @@ def generate(
     reasons: list[str] = []
     for attempt in range(max_attempts):
         drawn = seed if attempt == 0 else derive_seed(seed, attempt)
-        ps = _draw(drawn, kind, width, height, objects, world, small_emitters)
+        ps = _draw(drawn, kind, width, height, objects, world, small_emitters, strong_dof)
         ps.seed, ps.drawn_seed, ps.attempts = seed, drawn, attempt
         if keep_loaded:
             ps.loaded = load_procedural(ps, width, height)
