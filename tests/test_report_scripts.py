@@ -136,6 +136,30 @@ def test_ratio_by_lighting_groups_and_geometric_means(tmp_path: Path, monkeypatc
     assert capsys.readouterr().out.splitlines()[-1].split()[-2:] == ["2.0000", "(n=3)"]
 
 
+def test_ratio_by_lighting_by_noise_groups_by_the_noisy_input(tmp_path: Path, monkeypatch, capsys) -> None:
+    """Catches quartiles ranked the wrong way (q1 must be the least noisy), taken from another spp's
+    noisy rows (noise falls with spp, so groups would shift), groups that lose or repeat an image, and
+    the lighting groups printed instead."""
+    rl = load_script("ratio_by_lighting")
+    group, edges = rl.noise_quartiles({f"i{k}": float(v) for k, v in enumerate([8, 1, 7, 2, 6, 3, 5, 4])})
+    assert [group[f"i{k}"] for k in (1, 3, 5, 7, 6, 4, 2, 0)] == \
+        ["noise q1", "noise q1", "noise q2", "noise q2", "noise q3", "noise q3", "noise q4", "noise q4"]
+    assert edges == [1.0, 3.0, 5.0, 7.0, 8.0]
+    assert sorted(rl.noise_quartiles({"a": 1.0, "b": 2.0, "c": 3.0})[0].values()) == ["noise q1", "noise q2", "noise q3"]
+    # Three images: at 4 spp the least noisy has ratio 0.5; at 8 spp the noise order is reversed.
+    report = _lighting_report(tmp_path, [0.5, 2.0, 8.0], lambda i, ratio: [
+        {"image": f"im{i}", "spp": 4, "method": "noisy", "relmse": 1.0 + i},
+        {"image": f"im{i}", "spp": 8, "method": "noisy", "relmse": 10.0 - i},
+        {"image": f"im{i}", "spp": 4, "method": "old", "relmse": 0.1},
+        {"image": f"im{i}", "spp": 4, "method": "new", "relmse": 0.1 * ratio}])
+    monkeypatch.setattr("sys.argv", ["ratio_by_lighting.py", str(report), "old", "new", "--spp", "4", "--by-noise", "--all"])
+    rl.main()
+    out = capsys.readouterr().out.splitlines()
+    assert "noise q1" in out[1] and "bulbs" not in out[1]
+    assert out[2].split() == ["4", "new", "0.5000", "(n=1)", "2.0000", "(n=1)", "8.0000", "(n=1)", "2.0000", "(n=3)"]
+    assert out[-1] == "noisy relMSE at 4 spp, quartile edges: 1 / 2 / 3 / 3"
+
+
 def test_ratio_by_lighting_psnr_mode(tmp_path: Path, monkeypatch, capsys) -> None:
     """Catches a PSNR mode that reads the relMSE field, takes OLD - NEW (a loss printed as a gain),
     counts the images where NEW is lower wrong, or prints fewer than the 5 decimals at which a
