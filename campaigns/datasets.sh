@@ -28,6 +28,9 @@ recipe() {  # NAME [extra options]: render one set
     # studio_ref (campaign 34): a few objects on the ground under an environment, as product shots.
     studio_ref)  "$MC" dataset --out data/studio_ref  --count 48 --seed 3501 "${COMMON[@]/10-40/2-6}" --generator 4 --views 2 \
                    --world detailed --kind outdoor --split 0.8,0.2,0 "$@" ;;
+    # studio_plain (campaign 34): studio_ref without the small emitters, as product shots.
+    studio_plain) "$MC" dataset --out data/studio_plain --count 48 --seed 3502 "${COMMON[@]/10-40/2-6}" --generator 4 --views 2 \
+                   --world detailed --kind outdoor --small-emitters 0 --split 0.8,0.2,0 "$@" ;;
     # rich_val: all val, one view, reference at 512 spp, no variant recorded (made before the field).
     rich_val)    "$MC" dataset --out data/rich_val --generator 2 --count 8 --views 1 --spp 16 --ref-spp 512 --size 128 \
                    --world rich --seed 191 --max-depth 8 --objects 10-40 --split 0,1,0 --no-progress "$@" ;;

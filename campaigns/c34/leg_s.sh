@@ -1,13 +1,13 @@
 #!/usr/bin/env bash
 # Campaign 34, step 4 (campaigns/c34/rules.txt): layer-medium fine-tuned from the shipped weights with the studio set
-# data/studio_ref added (bash campaigns/datasets.sh studio_ref first), campaign 27's leg settings otherwise; then its
+# without small emitters data/studio_plain added (bash campaigns/datasets.sh studio_plain first), campaign 27's leg settings otherwise; then its
 # 0.25 average with the shipped weights. A rerun resumes the run.
 set -euo pipefail
 cd "$(dirname "$0")/../.."
 RUN=${RUN:-runs/layer_m34s}
 MC=.venv/bin/mcdenoise
 ARGS=(--model layer --preset medium --init campaigns/c20/layer_m20d/model.safetensors
-      --data data/detail_ref,data/detail_ref2,data/plain_ref,data/studio_ref --val-data data/detail_ref
+      --data data/detail_ref,data/detail_ref2,data/plain_ref,data/studio_plain --val-data data/detail_ref
       --steps 700 --batch 8 --crop 96 --lr 5e-5 --loss 'smape+0.05*relmse_in+0.05*relmse_in_wide'
       --branch-fraction 0 --amp bf16 --workers 1 --threads 2 --val-every 350 --checkpoint-every 50 --spp 4 16
       --seed 0 --no-progress)
