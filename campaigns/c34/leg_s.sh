@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Campaign 34, step 4 (campaigns/c34/rules.txt): layer-medium fine-tuned from the shipped weights with the studio set
-# without small emitters data/studio_plain added (bash campaigns/datasets.sh studio_plain first), campaign 27's leg settings otherwise; then its
-# 0.25 average with the shipped weights. A rerun resumes the run.
+# without small emitters, data/studio_plain, added (bash campaigns/datasets.sh studio_plain first), campaign 27's leg
+# settings otherwise; then its 0.25 average with the shipped weights. A rerun resumes the run.
 set -euo pipefail
 cd "$(dirname "$0")/../.."
 RUN=${RUN:-runs/layer_m34s}
