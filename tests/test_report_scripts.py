@@ -1,12 +1,16 @@
 """Scripts that read eval reports, datasets or saved outputs (scripts/compare_on_valscenes.py, scripts/bright_share_vs_ratio.py,
 scripts/ratio_by_lighting.py,
 scripts/results_block_drift.py, scripts/dataset_fingerprint.py,
-scripts/error_bands.py, scripts/two_scale_probe.py, scripts/loss_balance.py, scripts/band_probe.py)."""
+scripts/error_bands.py, scripts/two_scale_probe.py, scripts/loss_balance.py, scripts/band_probe.py,
+scripts/guide_swap_probe.py)."""
 
 from __future__ import annotations
 
 import json
 from pathlib import Path
+
+import numpy as np
+import torch
 
 from repo_scripts import load_script
 
@@ -440,3 +444,19 @@ def test_training_evidence_counts_the_crops_of_every_member_of_an_ensemble() -> 
     assert ev.seen_mp(one) == 800 * 8 * 96 * 96 / 1e6
     two = f"{one}  # seed 0; then  {one} --seed 1  # seed 1; then  python scripts/refine_ensemble.py a b c"
     assert ev.seen_mp(two) == 2 * ev.seen_mp(one)
+
+
+def test_guide_swap_probe_replaces_only_the_named_guides_by_their_means() -> None:
+    """Catches a swap that touches the radiance (the probe would measure something else), one that
+    keeps a sample's own guide, a mean over the wrong axis, or a shape the model cannot read."""
+    gs = load_script("guide_swap_probe")
+    rng = np.random.default_rng(0)
+    full = {c: rng.random((16, 3, 4, 5)).astype(np.float32) for c in ("albedo", "normal")}
+    batch = {"radiance": torch.rand(1, 4, 3, 4, 5), "albedo": torch.from_numpy(full["albedo"][:4])[None],
+             "normal": torch.from_numpy(full["normal"][:4])[None]}
+    out = gs.swap_to_means(batch, full, ("albedo",))
+    assert out["radiance"] is batch["radiance"] and out["normal"] is batch["normal"]
+    assert out["albedo"].shape == batch["albedo"].shape
+    want = torch.from_numpy(full["albedo"].mean(0))
+    for k in range(4):
+        assert torch.allclose(out["albedo"][0, k], want)
