@@ -177,15 +177,11 @@ def test_russian_roulette_depth_reaches_the_renders_and_the_recipe(tmp_path: Pat
         DatasetConfig(count=2, rr_depth=0).check()
 
 
-def test_small_emitter_rate_reaches_the_generator_and_the_recipe(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    """Bug caught: ``--small-emitters`` parsed but not passed to the generator (the dataset would
-    silently keep every small emitter), a recipe that drops it, a manifest hash blind to it, an old
-    dataset.json that gains the key (its manifest hash would change), or a rate out of [0, 1] or
-    with the classic world (which draws none) accepted."""
+def _generate_kwargs(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, cfg: DatasetConfig) -> dict:
+    """The keyword arguments ``render_procedural_image`` passes to the generator for ``cfg``."""
     import mcdenoise.render.procedural as procedural
     from mcdenoise.render.procedural_image import render_procedural_image
 
-    assert _parse("mcdenoise dataset --out d --count 2 --world rich --small-emitters 0.25").small_emitters == 0.25
     seen: dict = {}
 
     class Drawn(Exception):
@@ -197,52 +193,35 @@ def test_small_emitter_rate_reaches_the_generator_and_the_recipe(tmp_path: Path,
 
     monkeypatch.setattr(procedural, "generate", fake_generate)
     with pytest.raises(Drawn):
-        render_procedural_image(DatasetConfig(count=1, world="detailed", small_emitters=0.0, views=2), tmp_path, 0,
-                                ["proc_000000/view_000"])
-    assert seen["small_emitters"] == 0.0 and seen["world"] == "detailed"
-    base = DatasetConfig(count=3, spp=4, variant="llvm_ad_rgb", world="rich")
+        render_procedural_image(cfg, tmp_path, 0, ["proc_000000/view_000"])
+    return seen
+
+
+@pytest.mark.parametrize("field, flag, world, bad", [
+    ("small_emitters", "--small-emitters", "rich", ({"small_emitters": 1.5}, {"small_emitters": -0.1},
+                                                    {"small_emitters": 0.5, "world": "classic"})),
+    ("strong_dof", "--strong-dof", "detailed", ({"strong_dof": 1.5}, {"strong_dof": -0.1}, {"strong_dof": True})),
+])
+def test_scene_rates_reach_the_generator_and_the_recipe(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, field: str,
+                                                        flag: str, world: str, bad: tuple) -> None:
+    """Bug caught: ``--small-emitters`` or ``--strong-dof`` parsed but not passed to the generator (the
+    dataset would silently keep every small emitter, or the ordinary lens), a recipe that drops it, a
+    manifest hash blind to it, an old dataset.json that gains the key (its manifest hash would
+    change), or a rate out of [0, 1] (or small emitters with the classic world, which draws none)
+    accepted."""
+    assert getattr(_parse(f"mcdenoise dataset --out d --count 2 --world {world} {flag} 0.25"), field) == 0.25
+    seen = _generate_kwargs(tmp_path, monkeypatch, DatasetConfig(count=1, world="detailed", views=2, **{field: 0.0}))
+    assert seen[field] == 0.0 and seen["world"] == "detailed"
+    base = DatasetConfig(count=3, spp=4, variant="llvm_ad_rgb", world=world)
     a = _dataset(tmp_path / "a", base)
-    b = _dataset(tmp_path / "b", DatasetConfig(**{**base.__dict__, "small_emitters": 0.25}))
-    assert "small_emitters" not in json.loads((a / "dataset.json").read_text())
+    b = _dataset(tmp_path / "b", DatasetConfig(**{**base.__dict__, field: 0.25}))
+    assert field not in json.loads((a / "dataset.json").read_text())
     assert manifest_hash(a) != manifest_hash(b)
-    assert _parse(dataset_command(b)).small_emitters == 0.25
-    assert "--small-emitters" not in dataset_command(a)
-    for bad in ({"small_emitters": 1.5}, {"small_emitters": -0.1}, {"small_emitters": 0.5, "world": "classic"}):
-        with pytest.raises(Exception, match="small_emitters"):
-            DatasetConfig(**{**base.__dict__, **bad}).check()
-    DatasetConfig(**{**base.__dict__, "small_emitters": 0.0}).check()
-
-
-def test_strong_dof_reaches_the_generator_and_the_recipe(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    """Bug caught: ``--strong-dof`` parsed but not passed to the generator (the dataset would
-    silently keep the ordinary lens), a recipe that drops it, a manifest hash blind to it, an old
-    dataset.json that gains the key (its manifest hash would change), or a rate out of [0, 1]."""
-    import mcdenoise.render.procedural as procedural
-    from mcdenoise.render.procedural_image import render_procedural_image
-
-    assert _parse("mcdenoise dataset --out d --count 2 --strong-dof 0.5").strong_dof == 0.5
-    seen: dict = {}
-
-    class Drawn(Exception):
-        pass
-
-    def fake_generate(seed: int, **kw: object) -> None:
-        seen.update(kw)
-        raise Drawn
-
-    monkeypatch.setattr(procedural, "generate", fake_generate)
-    with pytest.raises(Drawn):
-        render_procedural_image(DatasetConfig(count=1, world="detailed", strong_dof=0.5, views=2), tmp_path, 0,
-                                ["proc_000000/view_000"])
-    assert seen["strong_dof"] == 0.5
-    base = DatasetConfig(count=3, spp=4, variant="llvm_ad_rgb", world="detailed")
-    a = _dataset(tmp_path / "a", base)
-    b = _dataset(tmp_path / "b", DatasetConfig(**{**base.__dict__, "strong_dof": 0.5}))
-    assert "strong_dof" not in json.loads((a / "dataset.json").read_text())
-    assert manifest_hash(a) != manifest_hash(b)
-    assert _parse(dataset_command(b)).strong_dof == 0.5
-    assert "--strong-dof" not in dataset_command(a)
-    for bad in (1.5, -0.1, True):
-        with pytest.raises(Exception, match="strong_dof"):
-            DatasetConfig(**{**base.__dict__, "strong_dof": bad}).check()
-    DatasetConfig(**{**base.__dict__, "strong_dof": 0.0, "world": "classic"}).check()  # any world has a lens
+    assert getattr(_parse(dataset_command(b)), field) == 0.25
+    assert flag not in dataset_command(a)
+    for wrong in bad:
+        with pytest.raises(Exception, match=field):
+            DatasetConfig(**{**base.__dict__, **wrong}).check()
+    DatasetConfig(**{**base.__dict__, field: 0.0}).check()
+    if field == "strong_dof":  # any world has a lens
+        DatasetConfig(**{**base.__dict__, field: 0.0, "world": "classic"}).check()

@@ -1,16 +1,5 @@
 #!/usr/bin/env bash
-# Campaign 34, step 4 (campaigns/c34/rules.txt): layer-medium fine-tuned from the shipped weights with the studio set
-# without small emitters, data/studio_plain, added (bash campaigns/datasets.sh studio_plain first), campaign 27's leg
-# settings otherwise; then its 0.25 average with the shipped weights. A rerun resumes the run.
+# Campaign 34, step 4 (campaigns/c34/rules.txt): step 2's leg with the studio set without small emitters,
+# data/studio_plain, in place of data/dof_ref (bash campaigns/datasets.sh studio_plain first): runs/layer_m34s.
 set -euo pipefail
-cd "$(dirname "$0")/../.."
-RUN=${RUN:-runs/layer_m34s}
-MC=.venv/bin/mcdenoise
-ARGS=(--model layer --preset medium --init campaigns/c20/layer_m20d/model.safetensors
-      --data data/detail_ref,data/detail_ref2,data/plain_ref,data/studio_plain --val-data data/detail_ref
-      --steps 700 --batch 8 --crop 96 --lr 5e-5 --loss 'smape+0.05*relmse_in+0.05*relmse_in_wide'
-      --branch-fraction 0 --amp bf16 --workers 1 --threads 2 --val-every 350 --checkpoint-every 50 --spp 4 16
-      --seed 0 --no-progress)
-if [ -f "$RUN/config.json" ]; then "$MC" train --out "$RUN" --resume; else "$MC" train --out "$RUN" "${ARGS[@]}"; fi
-mkdir -p runs/c34
-.venv/bin/python scripts/average_weights.py runs/c34/avg_m34s_25.safetensors campaigns/c20/layer_m20d "$RUN" --weights 0.75 0.25
+LEG=s SET=data/studio_plain exec bash "$(dirname "$0")/leg_d.sh"
