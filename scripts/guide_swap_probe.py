@@ -20,6 +20,7 @@ import torch
 from mcdenoise.data.image_folder import read_image
 from mcdenoise.data.tensors import input_arrays
 from mcdenoise.eval.methods import Inputs, ModelMethod
+from mcdenoise.eval.metrics import relmse
 from mcdenoise.models.weights import load_denoiser
 
 SWAPS = (("albedo", "normal"), ("albedo", "normal", "depth", "roughness"))
@@ -35,17 +36,12 @@ def swap_to_means(batch: dict[str, torch.Tensor], full: dict[str, np.ndarray], c
     return out
 
 
-def relmse(x: np.ndarray, ref: np.ndarray) -> float:
-    return float((((x - ref) ** 2) / (ref ** 2 + 1e-2)).mean())
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("model", help="a sample model: registered name, run folder or .safetensors")
     ap.add_argument("folders", nargs="+", type=Path, help="image folders with per-sample data and a reference")
     ap.add_argument("--spp", type=int, default=4)
     a = ap.parse_args()
-    torch.manual_seed(0)
     model, info = load_denoiser(a.model)
     m = ModelMethod("m", model, info, "cpu")
     if m.model.input_kind != "samples":

@@ -6,9 +6,15 @@ set -euo pipefail
 cd "$(dirname "$0")/../.."
 L=campaigns/c34/logs VAL=${VAL:-data/dof_ref} TAG=${TAG:-step1}
 OUT=reports/c34_$(basename "$VAL")_val
-.venv/bin/mcdenoise eval --models layer-medium kpcn-pixel refine-layer_medium_ctx_x2 ${EXTRA:-} --data $VAL --split val \
+.venv/bin/mcdenoise eval --models layer-medium kpcn-pixel refine-layer_medium_ctx_x2 --data $VAL --split val \
   --spp 4 8 16 --no-classic --oidn high --threads 1 --no-html --no-progress --out $OUT | tee $L/${TAG}_eval.log
 .venv/bin/python scripts/ratio_by_lighting.py $OUT/results.json oidn-high layer-medium kpcn-pixel \
-  refine-layer_medium_ctx_x2 ${EXTRA_NAMES:-} --all | tee $L/${TAG}_ratio.log
-.venv/bin/python scripts/ratio_by_lighting.py reports/c32_heldout_bands/results.json oidn-high layer-medium --all \
-  | tee $L/${TAG}_heldout_ratio.log
+  refine-layer_medium_ctx_x2 --all | tee $L/${TAG}_ratio.log
+.venv/bin/python scripts/ratio_by_lighting.py $OUT/results.json oidn-high layer-medium --all --metric psnr \
+  | tee $L/${TAG}_psnr.log
+# The standing held-out set (46 images) and the third-party renderings, for comparison.
+for R in reports/c32_heldout_bands reports/valscenes_seeds; do
+  .venv/bin/python scripts/ratio_by_lighting.py $R/results.json oidn-high layer-medium --all
+  .venv/bin/python scripts/ratio_by_lighting.py $R/results.json oidn-high layer-medium --all --by-noise
+  .venv/bin/python scripts/ratio_by_lighting.py $R/results.json oidn-high layer-medium --all --metric psnr
+done | tee $L/${TAG}_reference_ratios.log
