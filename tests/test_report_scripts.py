@@ -2,7 +2,7 @@
 scripts/ratio_by_lighting.py,
 scripts/results_block_drift.py, scripts/dataset_fingerprint.py,
 scripts/error_bands.py, scripts/two_scale_probe.py, scripts/loss_balance.py, scripts/band_probe.py,
-scripts/guide_swap_probe.py)."""
+scripts/guide_swap_probe.py, scripts/gap_by_feature.py, scripts/demod_probe.py)."""
 
 from __future__ import annotations
 
@@ -460,3 +460,54 @@ def test_guide_swap_probe_replaces_only_the_named_guides_by_their_means() -> Non
     want = torch.from_numpy(full["albedo"].mean(0))
     for k in range(4):
         assert torch.allclose(out["albedo"][0, k], want)
+
+
+def test_gap_by_feature_puts_each_error_in_its_bin_and_weighs_images_alike(tmp_path: Path, monkeypatch, capsys) -> None:
+    """Catches a feature read from the wrong dataset folder (the report's first folder is the dataset's name, the
+    dataset's is not), bins that drop or double-count pixels, and images weighted by their own error (one noisy image
+    then decides the table): A's error is 3x B's on the textured half of one image and equal to B's elsewhere and on
+    the other image, whose errors are 10x larger; weighed alike, the textured bin's ratio is (3 + 1) / 2."""
+    from mcdenoise.io.exr import write_exr
+
+    gb = load_script("gap_by_feature")
+    h, w = 4, 8
+    ref = np.ones((3, h, w), dtype=np.float32)
+    albedo = np.full((3, h, w), 0.5, dtype=np.float32)
+    albedo[:, :, 4:] = np.where(np.indices((h, 4)).sum(axis=0) % 2 == 0, 0.2, 0.8)  # textured right half
+    for i, scale in enumerate((1.0, 10.0)):
+        d = tmp_path / "rep" / "images" / "ds" / f"img{i}"
+        (d / "4spp").mkdir(parents=True)
+        write_exr(d / "reference.exr", {"radiance": ref})
+        b = ref + 0.1 * np.sqrt(scale)
+        a = b.copy()
+        if i == 0:
+            a[:, :, 4:] = ref[:, :, 4:] + 0.1 * np.sqrt(3 * scale)
+        write_exr(d / "4spp" / "A.exr", {"radiance": a})
+        write_exr(d / "4spp" / "B.exr", {"radiance": b})
+        n = tmp_path / "ds" / f"img{i}"
+        n.mkdir(parents=True)
+        write_exr(n / "noisy.exr", {"radiance": ref, "albedo": albedo, "roughness": np.ones((1, h, w), np.float32),
+                                    "depth": np.ones((1, h, w), np.float32), "normal": np.ones((3, h, w), np.float32)})
+    gb.main([str(tmp_path / "rep"), str(tmp_path / "ds"), "A", "B"])
+    out = capsys.readouterr().out
+    tex = out.split("albedo_texture:")[1].split("\n\n")[0].splitlines()
+    rows = {r.split("|")[0].strip(): [float(v) for v in r.split("|")[1:]] for r in tex[1:]}
+    # Column 3 borders the texture (its neighbour differs by 0.3): the middle bin, with no extra error.
+    assert rows["[0, 0.01)"][0] == 0.375 and np.isclose(rows["[0, 0.01)"][3], 1.0, rtol=1e-4)
+    assert rows["[0.03, 0.1)"][0] == 0.125 and np.isclose(rows["[0.03, 0.1)"][3], 1.0, rtol=1e-4)
+    assert rows["[0.1, inf)"][0] == 0.5 and np.isclose(rows["[0.1, inf)"][3], 2.0, rtol=1e-4)
+    assert "all: ratio 1.500" in out
+
+
+def test_demod_probe_box_keeps_constants_and_restores_texture_under_smooth_light() -> None:
+    """Catches a box filter that is not a mean (a constant image changes, or the edge is padded with zeros) and a
+    demodulation that is not inverted exactly: where the light is smooth and only the albedo has detail, the
+    demodulated box gives the image back, while the plain box smears the texture."""
+    dp = load_script("demod_probe")
+    c = np.full((3, 6, 7), 2.5)
+    assert np.allclose(dp.box(c, 2), c)
+    albedo = 0.2 + 0.6 * (np.indices((6, 7)).sum(axis=0) % 2)[None].repeat(3, axis=0)
+    light = np.linspace(1.0, 2.0, 7)[None, None, :].repeat(6, axis=1).repeat(3, axis=0)
+    y = albedo * light
+    demod = albedo * dp.box(y / albedo, 1)
+    assert dp.pixel_relmse(demod, y).mean() < 1e-3 < dp.pixel_relmse(dp.box(y, 1), y).mean()

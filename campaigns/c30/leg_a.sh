@@ -5,6 +5,6 @@ set -euo pipefail
 cd "$(dirname "$0")/../.."
 mkdir -p campaigns/c30/logs
 RUN=${RUN:-runs/refine_c30a} INIT=${INIT:-campaigns/c30/refine_ctx_init.safetensors} PRESET=${PRESET:-layer_medium_ctx} \
-  DATA=data/plain_ref,data/detail_ref STEPS=800 LR=1e-3 \
+  DATA=${DATA:-data/plain_ref,data/detail_ref} STEPS=800 LR=1e-3 \
   LOSS=${LOSS:-smape+0.05*relmse_in+0.05*relmse_in_wide+32*tonemapped_l2} \
   L=${L:-campaigns/c30/logs} TAG=${TAG:-a_} REPORT=${REPORT:-reports/c30a_valscenes} exec bash campaigns/c29/leg.sh
