@@ -52,11 +52,16 @@ def main(argv: list[str] | None = None) -> None:
     if not refs:
         raise SystemExit(f"{args.report}: no images/**/reference.exr (was the eval run with --save-images?)")
     logs: dict[str, list[float]] = {}
+    dark, albedo_dev, albedo_mean = [], [], []
     for ref_path in refs:
         rel = ref_path.parent.relative_to(args.report / "images")
         x = Inputs(ImageFolder(args.dataset / Path(*rel.parts[1:])), args.spp)
         a = effective_albedo(torch.from_numpy(x.guides["albedo"])[None].double(),
                              torch.from_numpy(x.guides["normal"])[None].double(), THRESHOLD)[0].numpy()
+        full = x.folder.read_noisy()["albedo"]  # every sample's mean: how far the eval's k-sample albedo strays
+        dark.append(float((x.guides["albedo"].max(axis=0) < THRESHOLD).mean()))
+        albedo_dev.append(float(np.abs(x.guides["albedo"] - full).mean()))
+        albedo_mean.append(float(full.mean()))
         ref = read_exr(ref_path)["radiance"].astype(np.float64)
         y = read_exr(ref_path.parent / f"{args.spp}spp" / f"{args.method}.exr")["radiance"].astype(np.float64)
         e0 = pixel_relmse(y, ref)
@@ -70,6 +75,9 @@ def main(argv: list[str] | None = None) -> None:
                             (f"best of y and demod r{r} (bound)", np.minimum(e0, ed))):
                 logs.setdefault(name, []).append(float(np.log(e.mean() / e0.mean())))
     print(f"{len(refs)} images, {args.spp} spp, {args.method}: geometric mean of relMSE ratios to its output")
+    print(f"  pixels with albedo below {THRESHOLD} in every channel: {np.mean(dark):.3f}; the {args.spp}-sample "
+          f"albedo's mean absolute difference to all samples' mean: {np.sum(albedo_dev) / np.sum(albedo_mean):.3f} "
+          f"of the latter's mean")
     for name, v in logs.items():
         print(f"  {name:34s} {np.exp(np.mean(v)):.4f}  (better on {sum(t < 0 for t in v)} of {len(v)})")
 
