@@ -160,12 +160,13 @@ def test_noisy_candidate_is_clamped_to_the_base_neighbourhood() -> None:
     assert (cands[1] <= hi * model.config.noisy_clamp + 1e-12).all()
 
 
-@pytest.mark.parametrize("context", [False, True])
-def test_exposure_equivariant(context: bool) -> None:
+@pytest.mark.parametrize("context,spread", [(False, False), (True, False), (True, True)])
+def test_exposure_equivariant(context: bool, spread: bool) -> None:
     """Catches features that are not exposure-normalised (log1p of raw radiance; with ``context``,
-    context features taken before the exposure scale): the same picture ten times brighter must
-    come out ten times brighter, filtered the same way."""
-    model = _model(base_config={"autoexposure": 0.18}, context=context).eval()
+    context features taken before the exposure scale; with ``spread``, the halves' outputs left
+    unscaled): the same picture ten times brighter must come out ten times brighter, filtered the
+    same way."""
+    model = _model(base_config={"autoexposure": 0.18}, context=context, spread=spread).eval()
     with torch.no_grad():
         for p in model.net.parameters():
             p.normal_(0, 0.3)  # away from the identity start, so the head's choices matter
@@ -384,3 +385,49 @@ def test_ensemble_script_joins_members_over_one_base_and_refuses_another(tmp_pat
     assert json.loads((tmp_path / "ens" / "result.json").read_text())["cpu_s_this_call"] == 41.0
     model, info = load_denoiser(tmp_path / "ens")
     assert info["preset"] == "small" and model.config.heads == 2
+
+
+def test_sample_halves_split_every_per_sample_tensor_and_nothing_else() -> None:
+    """Catches halves that overlap or drop samples (even and odd must partition them), a per-pixel
+    tensor sliced as if it had samples, and a split of a one-sample batch (no second opinion)."""
+    from mcdenoise.models.refine import sample_halves
+
+    rad = torch.arange(5.0).view(1, 5, 1, 1, 1).expand(1, 5, 3, 2, 2)
+    batch = {"radiance": rad, "scene_features": torch.ones(1, 4)}
+    a, b = sample_halves(batch)
+    assert a["radiance"][0, :, 0, 0, 0].tolist() == [0, 2, 4] and b["radiance"][0, :, 0, 0, 0].tolist() == [1, 3]
+    assert a["scene_features"] is batch["scene_features"]
+    assert sample_halves({"radiance": rad[:, :1]}) is None
+
+
+def test_spread_features_read_zero_where_the_halves_agree_and_ignore_exposure() -> None:
+    """Catches a spread that is not a ratio (it would change with the exposure, which the head's
+    other features do not) and one that is not 0 where the base gives the same output from either
+    half (a noise-free region)."""
+    from mcdenoise.models.refine import N_SPREAD, spread_features
+
+    g = torch.Generator().manual_seed(3)
+    lum = torch.rand(1, 1, 9, 9, generator=g, dtype=torch.float64) + 0.1
+    a = lum * (1 + 0.2 * torch.rand(lum.shape, generator=g, dtype=torch.float64))
+    f = spread_features(lum, a, lum)
+    assert f.shape == (1, N_SPREAD, 9, 9) and bool((f > 0).any())
+    assert spread_features(lum, a, a).abs().max() == 0
+    # Only the floor EPS (1e-3) is not scaled: against luminances >= 0.1 it moves a ratio by at most 1%.
+    torch.testing.assert_close(spread_features(lum * 1e6, a * 1e6, lum * 1e6), f, rtol=2e-2, atol=0)
+
+
+def test_spread_stage_starts_as_the_base_and_its_head_learns() -> None:
+    """Catches the two spread features fed to a head sized without them (a shape error), a spread
+    stage that does not start as its base, and a head cut off from the loss. A base that reads pixels
+    is refused: it has no samples to halve."""
+    model = _model(spread=True).eval()
+    batch = synthetic_batch(model, spp=4, height=24, width=20, generator=torch.Generator().manual_seed(6))
+    with torch.no_grad():
+        out, base = model(batch), model.base(batch)
+    assert ((out - base).abs().amax() / base.abs().amax()).item() < 0.02
+    model.train()
+    model(batch).square().mean().backward()
+    missing = [n for n, p in model.net.named_parameters() if p.grad is None or not bool(p.grad.abs().sum() > 0)]
+    assert not missing, f"head parameters without a gradient: {missing[:3]}"
+    with pytest.raises(ValueError, match="per-sample base"):
+        _model(base="kpcn:small", spread=True)

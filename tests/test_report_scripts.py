@@ -2,7 +2,8 @@
 scripts/ratio_by_lighting.py,
 scripts/results_block_drift.py, scripts/dataset_fingerprint.py,
 scripts/error_bands.py, scripts/two_scale_probe.py, scripts/loss_balance.py, scripts/band_probe.py,
-scripts/guide_swap_probe.py, scripts/gap_by_feature.py, scripts/demod_probe.py)."""
+scripts/guide_swap_probe.py, scripts/gap_by_feature.py, scripts/demod_probe.py,
+scripts/bias_variance_probe.py)."""
 
 from __future__ import annotations
 
@@ -511,3 +512,32 @@ def test_demod_probe_box_keeps_constants_and_restores_texture_under_smooth_light
     y = albedo * light
     demod = albedo * dp.box(y / albedo, 1)
     assert dp.pixel_relmse(demod, y).mean() < 1e-3 < dp.pixel_relmse(dp.box(y, 1), y).mean()
+
+
+def test_bias_variance_split_is_unbiased_and_sample_sets_are_disjoint() -> None:
+    """Catches a variance taken with 1/n instead of 1/(n - 1), or a bias that keeps the mean's own
+    variance (s^2 / n): over many draws of outputs y_j = r + b + noise, the bias part must average
+    to w b^2 and the variance part to w sigma^2 (each within 3 standard errors, measured here). Also
+    catches sample sets that overlap: set j must read stored samples j*k .. j*k + k - 1."""
+    bv = load_script("bias_variance_probe")
+    rng = np.random.default_rng(0)
+    ref = np.full((3, 8, 8), 2.0)
+    b, sigma, n = 0.3, 0.5, 4
+    w = 1 / (4.0 + 0.01)
+    parts = np.array([bv.split(ref + b + sigma * rng.standard_normal((n, 3, 8, 8)), ref) for _ in range(400)])
+    se = parts.std(axis=0) / np.sqrt(len(parts))
+    assert abs(parts[:, 1].mean() - w * b * b) < 3 * se[1] + 1e-12
+    assert abs(parts[:, 2].mean() - w * sigma * sigma) < 3 * se[2] + 1e-12
+    assert np.allclose(parts[:, 0], parts[:, 1] + parts[:, 2])
+
+    class Reader:
+        def read(self, names, *, samples=None, crop=None):
+            return {"radiance": np.array(samples)}
+
+    class Folder:
+        samples = Reader()
+        path = "x"
+
+    s = bv.SampleSet(Folder(), 8)
+    assert s.samples.read(["radiance"], samples=[0, 1, 2, 3])["radiance"].tolist() == [8, 9, 10, 11]
+    assert s.path == "x"

@@ -37,13 +37,16 @@ from mcdenoise.models.exposure import batch_exposure, check_key
 from mcdenoise.models.refine_config import RefineConfig
 
 __all__ = ["RefineConfig", "Refine", "blur", "context_features", "noisy_band", "power_mean", "refine_features",
-           "N_CONTEXT", "N_FEATURES"]
+           "N_CONTEXT", "N_FEATURES", "N_SPREAD", "spread_features", "sample_halves"]
 
 #: Log colour of the base output and of the noisy mean, albedo, normal, the noisy mean's
 #: relative deviation from the base and its relative variance.
 N_FEATURES = 3 + 3 + 3 + 3 + 1 + 1
 #: Context features (``RefineConfig.context``): emitter proximity at two radii, brightness context at two.
 N_CONTEXT = 4
+#: Spread features (``RefineConfig.spread``): the base's disagreement with itself over two halves of the samples,
+#: per pixel and over 5x5.
+N_SPREAD = 2
 #: Radii of the emitter-proximity windows (5x5, 13x13) and of the brightness-context windows (9x9, 25x25).
 NEAR_RADII = (2, 6)
 GLOW_RADII = (4, 12)
@@ -112,16 +115,39 @@ def context_features(lum: torch.Tensor, mask: torch.Tensor | None) -> torch.Tens
     return torch.cat(feats, dim=1)
 
 
+def sample_halves(batch: dict[str, torch.Tensor]) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor]] | None:
+    """The batch's even- and odd-numbered samples as two batches (per-sample tensors are
+    ``(B, S, C, H, W)``; the rest is shared), or None with fewer than two samples."""
+    rad = batch["radiance"]
+    if rad.dim() != 5 or rad.shape[1] < 2:
+        return None
+    return tuple({k: (v[:, i::2] if v.dim() == 5 else v) for k, v in batch.items()} for i in (0, 1))  # type: ignore[return-value]
+
+
+def spread_features(lum: torch.Tensor, half_a: torch.Tensor, half_b: torch.Tensor) -> torch.Tensor:
+    """``(B, N_SPREAD, H, W)``: how much the base's output changes with the samples it reads, an
+    estimate of its own noise (the dual-buffer idea of Rousselle et al. 2012). ``lum`` (B, 1, H, W) the
+    base output's luminance, ``half_a``/``half_b`` (B, 1, H, W) the luminance of the base run on each
+    half of the samples, all at the autoexposure scale. ``log1p`` of the difference over the output,
+    per pixel and as the root mean square over 5x5 (a smoother map of the same)."""
+    d = (half_a - half_b).abs()
+    local = blur(d * d, 3).clamp_min(0).sqrt()
+    return torch.cat([torch.log1p(d / (lum + EPS)), torch.log1p(local / (blur(lum, 3) + EPS))], dim=1)
+
+
 def refine_features(base: torch.Tensor, noisy: torch.Tensor, var_mean: torch.Tensor, albedo: torch.Tensor,
                     normal: torch.Tensor, scale: torch.Tensor | None, mask: torch.Tensor | None = None,
-                    context: bool = False) -> torch.Tensor:
-    """``(B, N_FEATURES [+ N_CONTEXT], H, W)`` inputs of the head, exposure-normalised: ``base``,
-    ``noisy`` (B, 3, H, W) radiance, ``var_mean`` (B, 3, H, W) the variance of the noisy mean,
+                    context: bool = False, halves: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
+    """``(B, N_FEATURES [+ N_CONTEXT] [+ N_SPREAD], H, W)`` inputs of the head, exposure-normalised:
+    ``base``, ``noisy`` (B, 3, H, W) radiance, ``var_mean`` (B, 3, H, W) the variance of the noisy mean,
     ``albedo`` and ``normal`` (B, 3, H, W) pixel means, ``scale`` (B,) the autoexposure scale (None:
-    1); with ``context``, :func:`context_features` of the base and the emitter ``mask`` follow."""
+    1); with ``context``, :func:`context_features` of the base and the emitter ``mask`` follow; with
+    ``halves`` (the base's outputs (B, 3, H, W) on each half of the samples), :func:`spread_features`."""
     if scale is not None:
         s = scale.to(base.dtype).view(-1, 1, 1, 1)
         base, noisy, var_mean = base * s, noisy * s, var_mean * s * s
+        if halves is not None:
+            halves = (halves[0] * s, halves[1] * s)
     base, noisy = base.clamp_min(0), noisy.clamp_min(0)
     lb, ln = _lum(base), _lum(noisy)
     # Noise or detail? How far the noisy mean is from the base, relative to the base and to its noise.
@@ -130,6 +156,8 @@ def refine_features(base: torch.Tensor, noisy: torch.Tensor, var_mean: torch.Ten
     feats = [torch.log1p(base), torch.log1p(noisy), albedo.clamp(0, 1), normal, deviation, rel_var]
     if context:
         feats.append(context_features(lb, mask))
+    if halves is not None:
+        feats.append(spread_features(lb, _lum(halves[0].clamp_min(0)), _lum(halves[1].clamp_min(0))))
     return torch.cat(feats, dim=1)
 
 
@@ -154,7 +182,9 @@ class Refine(Denoiser):
         self.dilations = [1] + ([1] if config.noisy else []) + [int(f) for f in config.coarse]
         k2 = k * k
         w = config.width
-        n_in = N_FEATURES + (N_CONTEXT if config.context else 0)
+        n_in = N_FEATURES + (N_CONTEXT if config.context else 0) + (N_SPREAD if config.spread else 0)
+        if config.spread and self.input_kind != "samples":
+            raise ValueError(f"refine: spread needs a per-sample base, {config.base} reads pixels")
         if config.heads < 1:
             raise ValueError(f"refine: heads must be >= 1, got {config.heads}")
 
@@ -231,14 +261,24 @@ class Refine(Denoiser):
         # respect to the inputs pass (the receptive-field probe of tiled inference follows them).
         with torch.no_grad() if self.training else nullcontext():
             base = self.base(batch)
+            halves = None
+            if self.config.spread:
+                split = sample_halves(batch)
+                # One sample: no second opinion, the spread reads 0 (the two "halves" agree).
+                halves = [base, base] if split is None else [self.base(h) for h in split]
         noisy, var, albedo, normal = self.pixel_inputs(batch)
         base = base.to(noisy.dtype)
+        if halves is not None:
+            halves = [h.to(noisy.dtype) for h in halves]
         mask = batch_emitter_mask(batch, self.required_channels())
         if mask is not None and not _tracing() and bool(mask.any()):
             # Lights out of every candidate the taps read; they come back by pass_through.
             base, noisy, var = (fill_from_neighbours(t, mask) for t in (base, noisy, var))
+            if halves is not None:
+                halves = [fill_from_neighbours(h, mask) for h in halves]
         s = batch_exposure(batch, self.exposure_colour(batch), self.autoexposure) if self.autoexposure else None
-        feats = refine_features(base, noisy, var, albedo, normal, s, mask, self.config.context)
+        feats = refine_features(base, noisy, var, albedo, normal, s, mask, self.config.context,
+                                None if halves is None else (halves[0], halves[1]))
         return feats, base, noisy, mask
 
     def features(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
@@ -271,12 +311,17 @@ def _layer_medium_ctx_x3() -> RefineConfig:
     return RefineConfig(base="layer:medium", context=True, heads=3)
 
 
+def _layer_medium_ctx_spread() -> RefineConfig:
+    return RefineConfig(base="layer:medium", context=True, spread=True)
+
+
 register_model(
     "refine",
     config_cls=RefineConfig,
     presets={"small": lambda: RefineConfig(), "paper": lambda: RefineConfig(width=32, levels=3),
              "layer_medium": _layer_medium, "layer_medium_ctx": _layer_medium_ctx,
-             "layer_medium_ctx_x2": _layer_medium_ctx_x2, "layer_medium_ctx_x3": _layer_medium_ctx_x3},
+             "layer_medium_ctx_x2": _layer_medium_ctx_x2, "layer_medium_ctx_x3": _layer_medium_ctx_x3,
+             "layer_medium_ctx_spread": _layer_medium_ctx_spread},
     paper=_PAPER,
     description="a frozen base model (layer-medium), then per-pixel softmax 5x5 taps over its output, the clamped "
                 "noisy mean and the output blurred at 2x and 4x",

@@ -50,6 +50,14 @@ class RefineConfig:
     25x25. Why: campaign 29's head, reading per-pixel statistics only, smoothed the isolated outliers of dim
     rooms (third-party relMSE 0.62x layer-medium at the pixel scale) but lost 0.05-0.11 dB of held-out PSNR on
     the images with small bright emitters and nothing on the others: it could not tell the two apart."""
+    spread: bool = False
+    """Two more head features: how far the base's outputs on the even- and on the odd-numbered samples
+    differ, per pixel and over 5x5 (:func:`~mcdenoise.models.refine.spread_features`); the base runs three
+    times. Why: campaign 35 split the error over disjoint sample sets (``scripts/bias_variance_probe.py``).
+    On the 54 third-party renderings at 4 spp refine-layer_medium_ctx_x2's bias part is below OIDN high's
+    (0.066 against 0.078) and its variance part 1.7x (0.032 against 0.019), while on our own held-out
+    images the base's variance is OIDN's: on unfamiliar content the base leaves noise, and nothing the
+    head reads says where. The base's disagreement with itself does, whatever the content."""
     heads: int = 1
     """Heads over the one frozen base; their softmax weights are averaged, which is the average of
     their outputs (the taps are linear in the weights), so a convex kernel stays one. Why: two training
