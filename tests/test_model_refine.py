@@ -248,15 +248,17 @@ def test_context_features_locate_a_light_and_ignore_exposure() -> None:
     torch.testing.assert_close(glow8, f[:, 2:], rtol=0, atol=2e-2)
 
 
-def test_context_preset_tiles_like_the_whole_image() -> None:
+@pytest.mark.parametrize("spread", [False, True])
+def test_context_preset_tiles_like_the_whole_image(spread: bool) -> None:
     """Catches a receptive field measured too short for the context windows (a max pool's gradient
     reaches only its argmax, so the probe would cut tiles too tight), and context features that
-    depend on where a tile starts. Tiles get the whole image's exposure scale, as denoise gives them."""
+    depend on where a tile starts; with ``spread``, halves of the samples that differ between a tile
+    and the whole image. Tiles get the whole image's exposure scale, as denoise gives them."""
     from mcdenoise.infer.receptive import alignment, receptive_field
     from mcdenoise.infer.tiling import plan_tiles, run_tiled
     from mcdenoise.models.exposure import EXPOSURE_SCALE, batch_exposure
 
-    model = _model(context=True).eval()
+    model = _model(context=True, spread=spread).eval()
     with torch.no_grad():
         for p in model.net.parameters():
             p.normal_(0, 0.3)  # away from the identity start, so the features matter
@@ -411,7 +413,7 @@ def test_spread_features_read_zero_where_the_halves_agree_and_ignore_exposure() 
     a = lum * (1 + 0.2 * torch.rand(lum.shape, generator=g, dtype=torch.float64))
     f = spread_features(lum, a, lum)
     assert f.shape == (1, N_SPREAD, 9, 9) and bool((f > 0).any())
-    assert spread_features(lum, a, a).abs().max() == 0
+    assert spread_features(lum, a, a).abs().max() < 1e-100  # the 5x5 root's floor, sqrt(tiny)
     # Only the floor EPS (1e-3) is not scaled: against luminances >= 0.1 it moves a ratio by at most 1%.
     torch.testing.assert_close(spread_features(lum * 1e6, a * 1e6, lum * 1e6), f, rtol=2e-2, atol=0)
 
@@ -431,3 +433,15 @@ def test_spread_stage_starts_as_the_base_and_its_head_learns() -> None:
     assert not missing, f"head parameters without a gradient: {missing[:3]}"
     with pytest.raises(ValueError, match="per-sample base"):
         _model(base="kpcn:small", spread=True)
+
+
+def test_spread_features_gradients_stay_finite_where_the_halves_agree() -> None:
+    """Catches a square root at 0 in the 5x5 spread (its gradient is infinite): with one sample the
+    halves agree everywhere, the gradients went NaN, and the receptive-field probe, which follows
+    gradients, measured the stage's reach as 0 pixels."""
+    from mcdenoise.models.refine import spread_features
+
+    lum = (torch.rand(1, 1, 7, 7, dtype=torch.float64) + 0.1).requires_grad_(True)
+    half = lum * 1.0
+    spread_features(lum, half, half).sum().backward()
+    assert torch.isfinite(lum.grad).all()

@@ -33,7 +33,7 @@ from mcdenoise.models.base import Denoiser, build_from_fields, register_model
 from mcdenoise.models.blocks import UNet
 from mcdenoise.models.combine import LOGIT_BOUND, _lum, apply_weights, max3x3
 from mcdenoise.models.emitters import _tracing, as_reflectance, batch_emitter_mask, fill_from_neighbours, pass_through
-from mcdenoise.models.exposure import batch_exposure, check_key
+from mcdenoise.models.exposure import EXPOSURE_SCALE, batch_exposure, check_key
 from mcdenoise.models.refine_config import RefineConfig
 
 __all__ = ["RefineConfig", "Refine", "blur", "context_features", "noisy_band", "power_mean", "refine_features",
@@ -131,7 +131,8 @@ def spread_features(lum: torch.Tensor, half_a: torch.Tensor, half_b: torch.Tenso
     half of the samples, all at the autoexposure scale. ``log1p`` of the difference over the output,
     per pixel and as the root mean square over 5x5 (a smoother map of the same)."""
     d = (half_a - half_b).abs()
-    local = blur(d * d, 3).clamp_min(0).sqrt()
+    # The floor keeps the root's gradient finite where the halves agree (one sample: everywhere).
+    local = blur(d * d, 3).clamp_min(torch.finfo(d.dtype).tiny).sqrt()
     return torch.cat([torch.log1p(d / (lum + EPS)), torch.log1p(local / (blur(lum, 3) + EPS))], dim=1)
 
 
@@ -264,6 +265,11 @@ class Refine(Denoiser):
             halves = None
             if self.config.spread:
                 split = sample_halves(batch)
+                if split is not None and self.base.autoexposure and EXPOSURE_SCALE not in batch:
+                    # The halves at the whole batch's exposure: tiles are given the whole image's scale
+                    # (one for all three runs), so the whole image must use one too, or tiles would differ.
+                    scale = batch_exposure(batch, self.base.exposure_colour(batch), self.base.autoexposure)
+                    split = tuple({**h, EXPOSURE_SCALE: scale} for h in split)
                 # One sample: no second opinion, the spread reads 0 (the two "halves" agree).
                 halves = [base, base] if split is None else [self.base(h) for h in split]
         noisy, var, albedo, normal = self.pixel_inputs(batch)
