@@ -4,8 +4,10 @@ For each image of an ``mcdenoise eval ... --save-images`` report, the model's ou
 demodulated by the effective albedo ``a`` of the eval's own input samples (wskp's rule,
 :func:`mcdenoise.models.wskp.effective_albedo`), box-filtered over ``(2r+1)^2`` pixels and
 modulated back: ``a * box_r(y / a)``. Beside it, the plain ``box_r(y)`` (the control: smoothing
-alone), and the per-pixel best of ``y`` and the demodulated one (what a perfect per-pixel selector
-could reach; an upper bound, not a method). relMSE as ``mcdenoise eval`` computes it; the geometric
+alone), the albedo's detail put back on rough pixels (``y a / box_r(a)``: would undo a blurred
+texture), and the per-pixel best of ``y`` and the demodulated one (what a perfect per-pixel selector
+could reach; a bound, not a method). It also prints the share of dark-albedo pixels and how far the
+eval's albedo strays from every sample's mean. relMSE as ``mcdenoise eval`` computes it; the geometric
 mean of per-image ratios to ``y``'s.
 
     python scripts/demod_probe.py reports/c35_studio_images data/studio_plain layer-medium --spp 4
@@ -22,6 +24,7 @@ import mcdenoise  # noqa: F401  (sets up the package's defaults)
 from mcdenoise.data.image_folder import ImageFolder
 from mcdenoise.eval.methods import Inputs
 from mcdenoise.io.exr import read_exr
+from mcdenoise.models.refine import blur
 from mcdenoise.models.wskp import effective_albedo
 
 EPS = 0.01  # the relMSE's, mcdenoise/eval/metrics.py
@@ -29,10 +32,9 @@ THRESHOLD = 0.05  # wskp's default (mcdenoise/models/wskp.py)
 
 
 def box(x: np.ndarray, r: int) -> np.ndarray:
-    """``(C, H, W)`` -> same: the mean over ``(2r+1)^2`` pixels, the edge repeated."""
-    t = torch.from_numpy(x)[None].double()
-    t = torch.nn.functional.pad(t, (r, r, r, r), mode="replicate")
-    return torch.nn.functional.avg_pool2d(t, 2 * r + 1, stride=1)[0].numpy()
+    """``(C, H, W)`` -> same: the mean over ``(2r+1)^2`` pixels, the edge repeated (the second
+    stage's :func:`~mcdenoise.models.refine.blur` at factor ``r + 1``), in float64."""
+    return blur(torch.from_numpy(x)[None].double(), r + 1)[0].numpy()
 
 
 def pixel_relmse(y: np.ndarray, ref: np.ndarray) -> np.ndarray:
@@ -65,13 +67,15 @@ def main(argv: list[str] | None = None) -> None:
         ref = read_exr(ref_path)["radiance"].astype(np.float64)
         y = read_exr(ref_path.parent / f"{args.spp}spp" / f"{args.method}.exr")["radiance"].astype(np.float64)
         e0 = pixel_relmse(y, ref)
+        # Rough pixels only for the texture line: a glossy pixel's radiance is not albedo times light.
+        has_roughness = "roughness" in x.folder.meta.channels
+        rough = x.model_inputs(["roughness"], "pixels")["roughness"] > 0.5 if has_roughness else True
         for r in args.radii:
-            d = a * box(y / a, r)
-            ed = pixel_relmse(d, ref)
+            ed = pixel_relmse(a * box(y / a, r), ref)
             # Texture put back: if y blurred the albedo's detail (y ~ box(a) E), y a / box(a) restores it.
-            rough = x.model_inputs(["roughness"], "pixels")["roughness"] > 0.5 if "roughness" in x.folder.meta.channels else True
             tex = np.where(rough, y * a / box(a, r), y)
-            for name, e in ((f"demod box r{r}", ed), (f"texture back r{r} (rough px)", pixel_relmse(tex, ref)), (f"plain box r{r}", pixel_relmse(box(y, r), ref)),
+            for name, e in ((f"demod box r{r}", ed), (f"texture back r{r} (rough px)", pixel_relmse(tex, ref)),
+                            (f"plain box r{r}", pixel_relmse(box(y, r), ref)),
                             (f"best of y and demod r{r} (bound)", np.minimum(e0, ed))):
                 logs.setdefault(name, []).append(float(np.log(e.mean() / e0.mean())))
     print(f"{len(refs)} images, {args.spp} spp, {args.method}: geometric mean of relMSE ratios to its output")
