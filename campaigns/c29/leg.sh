@@ -14,11 +14,12 @@ PRESET=${PRESET:-layer_medium}
 LOSS=${LOSS:-smape+0.05*relmse_in+0.05*relmse_in_wide}
 TAG=${TAG:-}                       # log-name prefix
 SEED=${SEED:-}                     # training seed (empty: train's default)
+SPP=${SPP:-4 16}                   # random input spp range of training (lo hi)
 REPORT=${REPORT:-reports/c29_valscenes}
 [ -e "$INIT" ] || $PY scripts/refine_init.py layer-medium "$INIT" --preset "$PRESET"
 /usr/bin/time -v $MC train --model refine --preset "$PRESET" --init "$INIT" \
   --data "$DATA" --val-data data/plain_ref --out "$RUN" --steps "$STEPS" --batch 8 --crop 96 --lr "$LR" \
-  --loss "$LOSS" --target reference --spp 4 16 --val-every 200 --val-images 8 \
+  --loss "$LOSS" --target reference --spp $SPP --val-every 200 --val-images 8 \
   --checkpoint-every 50 --workers 1 --threads 2 ${SEED:+--seed $SEED} --no-progress $( [ -d "$RUN" ] && echo --resume ) > $L/${TAG}train.log 2>&1
 $PY scripts/consistency_probe.py "${HELD[@]}" --models layer-medium "$RUN" --spp 4 8 16 --ks 4 > $L/${TAG}probe.log 2>&1
 $PY scripts/brightness_by_quartile.py "${HELD[@]}" --models layer-medium "$RUN" --spp 4 --summary > $L/${TAG}brightness.log 2>&1
