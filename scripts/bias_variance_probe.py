@@ -14,6 +14,9 @@ method it prints the mean over images of the total and of each part, and each pa
 ``--baseline``'s (per image divided by the baseline's total, so every image weighs the same).
 
     python scripts/bias_variance_probe.py data/studio_plain --models layer-medium --spp 4
+
+``--by-luminance`` also splits each part over decades of the reference's luminance (campaign 35,
+step 7): which pixels carry a method's variance.
 """
 from __future__ import annotations
 
@@ -53,17 +56,40 @@ class SampleSet:
         return getattr(self._folder, name)
 
 
-def split(outputs: np.ndarray, ref: np.ndarray) -> tuple[float, float, float]:
-    """``outputs (n, 3, H, W)`` of disjoint sample sets, ``ref (3, H, W)`` -> (total, bias, variance):
-    image means of the per-pixel terms of the module docstring; total = bias + variance."""
+def split_maps(outputs: np.ndarray, ref: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``outputs (n, 3, H, W)`` of disjoint sample sets, ``ref (3, H, W)`` -> per-pixel (bias, variance)
+    maps ``(H, W)``, each the mean over channels of the module docstring's terms."""
     n = outputs.shape[0]
     w = 1.0 / (ref.astype(np.float64) ** 2 + EPS)
     y = outputs.astype(np.float64)
     m = y.mean(axis=0)
-    s2 = ((y - m) ** 2).sum(axis=0) / (n - 1)
-    var = float((w * s2).mean())
-    bias = float((w * (m - ref) ** 2).mean()) - var / n
-    return bias + var, bias, var
+    var = w * ((y - m) ** 2).sum(axis=0) / (n - 1)
+    bias = w * (m - ref) ** 2 - var / n
+    return bias.mean(axis=0), var.mean(axis=0)
+
+
+def split(outputs: np.ndarray, ref: np.ndarray) -> tuple[float, float, float]:
+    """``outputs (n, 3, H, W)`` of disjoint sample sets, ``ref (3, H, W)`` -> (total, bias, variance):
+    image means of the per-pixel terms of the module docstring; total = bias + variance."""
+    bias, var = split_maps(outputs, ref)
+    return float(bias.mean() + var.mean()), float(bias.mean()), float(var.mean())
+
+
+#: ``--by-luminance`` bins: the reference's luminance (mean of its channels) in decades.
+LUMINANCE_EDGES = (0.0, 0.01, 0.1, 1.0, 10.0, np.inf)
+
+
+def by_luminance(bias: np.ndarray, var: np.ndarray, ref: np.ndarray,
+                 edges: tuple[float, ...] = LUMINANCE_EDGES) -> np.ndarray:
+    """Per-pixel ``bias``/``var`` maps ``(H, W)`` and ``ref (3, H, W)`` -> ``(bins, 3)``: per luminance
+    bin of the reference, the fraction of pixels and the bin's share of the image's bias and variance
+    parts (its sum over the image's pixel count), so each part's shares add up to :func:`split`'s."""
+    lum = ref.astype(np.float64).mean(axis=0)
+    idx = np.clip(np.searchsorted(np.asarray(edges), lum, side="right") - 1, 0, len(edges) - 2)
+    k, npx = len(edges) - 1, lum.size
+    return np.stack([np.bincount(idx.ravel(), minlength=k) / npx,
+                     np.bincount(idx.ravel(), bias.ravel(), minlength=k) / npx,
+                     np.bincount(idx.ravel(), var.ravel(), minlength=k) / npx], axis=1)
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -74,10 +100,13 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--spp", type=int, default=4)
     ap.add_argument("--baseline", default="oidn-high")
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--by-luminance", action="store_true",
+                    help="also split each part over decades of the reference's luminance")
     args = ap.parse_args(argv)
     methods = [ModelMethod(spec, *load_denoiser(spec), "cpu") for spec in args.models]
     images = [e.folder for e in collect_images(args.roots, split=args.split)[0]]
     per: dict[str, list[tuple[float, float, float]]] = {}
+    bins: dict[str, list[np.ndarray]] = {}
     for im in images:
         n = im.meta.spp // args.spp
         if n < 2 or im.samples is None:
@@ -94,7 +123,10 @@ def main(argv: list[str] | None = None) -> None:
                 with torch.inference_mode():
                     outs.setdefault(meth.name, []).append(meth.run(meth.prepare(x)))
         for name, ys in outs.items():
-            per.setdefault(name, []).append(split(np.stack(ys), ref))
+            bias, var = split_maps(np.stack(ys), ref)
+            per.setdefault(name, []).append((float(bias.mean() + var.mean()), float(bias.mean()),
+                                             float(var.mean())))
+            bins.setdefault(name, []).append(by_luminance(bias, var, ref))
     base = np.array(per[args.baseline])
     print(f"{len(images)} images, {args.spp} spp, {n} disjoint sample sets each; ratios to {args.baseline}, "
           f"each image divided by its total first")
@@ -104,6 +136,18 @@ def main(argv: list[str] | None = None) -> None:
         r = (v / base[:, :1]).sum(axis=0) / base.shape[0]
         print(f"{name:28s} {v[:, 0].mean():9.5f} {v[:, 1].mean():9.5f} {v[:, 2].mean():9.5f} | "
               f"{r[0]:6.3f} {r[1]:6.3f} {r[2]:6.3f}")
+    if args.by_luminance:
+        e = LUMINANCE_EDGES
+        labels = [f"{e[i]:g}-{e[i + 1]:g}" for i in range(len(e) - 1)]
+        frac = np.mean([b[:, 0] for b in bins[args.baseline]], axis=0)
+        print("\nby the reference's luminance (mean of its channels): each bin's share of the image's part, "
+              "mean over images; the shares add up to the totals above")
+        print(f"{'luminance':>12s} {'pixels':>7s} " + " ".join(f"{n[:17]:>17s}" for n in per if n != "noisy"))
+        print(f"{'':>12s} {'':>7s} " + " ".join(f"{'bias':>8s} {'var':>8s}" for n in per if n != "noisy"))
+        for i, lab in enumerate(labels):
+            row = " ".join(f"{np.mean([b[i, 1] for b in bins[n]]):8.5f} {np.mean([b[i, 2] for b in bins[n]]):8.5f}"
+                           for n in per if n != "noisy")
+            print(f"{lab:>12s} {frac[i]:7.3f} {row}")
 
 
 if __name__ == "__main__":

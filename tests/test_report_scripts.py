@@ -541,3 +541,26 @@ def test_bias_variance_split_is_unbiased_and_sample_sets_are_disjoint() -> None:
     s = bv.SampleSet(Folder(), 8)
     assert s.samples.read(["radiance"], samples=[0, 1, 2, 3])["radiance"].tolist() == [8, 9, 10, 11]
     assert s.path == "x"
+
+
+def test_bias_variance_luminance_shares_add_up_and_follow_the_reference() -> None:
+    """Catches luminance bins that lose or double-count pixels (shares must add up to split's parts),
+    shares divided by the bin's pixel count instead of the image's, and a pixel put in the wrong
+    decade: a bias placed only where the reference is 0.05 must land in the 0.01-0.1 bin alone."""
+    bv = load_script("bias_variance_probe")
+    rng = np.random.default_rng(1)
+    ref = np.exp(rng.uniform(np.log(1e-3), np.log(50.0), (1, 16, 16))).repeat(3, axis=0)
+    outs = ref + 0.2 * ref * rng.standard_normal((4, 3, 16, 16))
+    total, bias, var = bv.split(outs, ref)
+    shares = bv.by_luminance(*bv.split_maps(outs, ref), ref)
+    assert shares.shape == (len(bv.LUMINANCE_EDGES) - 1, 3)
+    assert np.isclose(shares[:, 0].sum(), 1.0)
+    assert np.isclose(shares[:, 1].sum(), bias) and np.isclose(shares[:, 2].sum(), var)
+    ref2 = np.full((3, 4, 4), 5.0)
+    ref2[:, 0, 0] = 0.05
+    outs2 = np.repeat(ref2[None], 4, axis=0)
+    outs2[:, :, 0, 0] += 0.1  # the same offset in every set: bias only
+    s2 = bv.by_luminance(*bv.split_maps(outs2, ref2), ref2)
+    assert np.allclose(s2[:, 0], [0, 1 / 16, 0, 15 / 16, 0])
+    w = 1 / (0.05**2 + bv.EPS)
+    assert np.allclose(s2[:, 1], [0, w * 0.01 / 16, 0, 0, 0]) and np.allclose(s2[:, 2], 0)
