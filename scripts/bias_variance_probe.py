@@ -16,7 +16,9 @@ method it prints the mean over images of the total and of each part, and each pa
     python scripts/bias_variance_probe.py data/studio_plain --models layer-medium --spp 4
 
 ``--by-luminance`` also splits each part over decades of the reference's luminance (campaign 35,
-step 7): which pixels carry a method's variance.
+step 7): which pixels carry a method's variance. ``--spread-scale K`` feeds heads with the spread
+features (``RefineConfig.spread``) K times the base's disagreement between its halves (0: none):
+does the head act on where it reads the base's noise?
 """
 from __future__ import annotations
 
@@ -30,6 +32,7 @@ import mcdenoise  # noqa: F401  (sets up the package's defaults)
 from mcdenoise.eval.images import collect_images
 from mcdenoise.eval.methods import Inputs, ModelMethod
 from mcdenoise.eval.oidn import oidn_denoise
+from mcdenoise.models import refine
 from mcdenoise.models.weights import load_denoiser
 
 EPS = 0.01  # the relMSE's, mcdenoise/eval/metrics.py
@@ -92,6 +95,18 @@ def by_luminance(bias: np.ndarray, var: np.ndarray, ref: np.ndarray,
                      np.bincount(idx.ravel(), var.ravel(), minlength=k) / npx], axis=1)
 
 
+def scale_spread(k: float) -> None:
+    """From now on :func:`refine.spread_features` reads the two halves ``k`` times as far apart,
+    about their mean (a probe, for this process only)."""
+    orig = refine.spread_features
+
+    def scaled(lum: torch.Tensor, half_a: torch.Tensor, half_b: torch.Tensor) -> torch.Tensor:
+        mid = (half_a + half_b) / 2
+        return orig(lum, mid + k * (half_a - mid), mid + k * (half_b - mid))
+
+    refine.spread_features = scaled
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("roots", nargs="+", help="datasets (their --split images) or image folders")
@@ -102,7 +117,11 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--by-luminance", action="store_true",
                     help="also split each part over decades of the reference's luminance")
+    ap.add_argument("--spread-scale", type=float, default=None, metavar="K",
+                    help="spread-feature heads read K times the base's disagreement between halves")
     args = ap.parse_args(argv)
+    if args.spread_scale is not None:
+        scale_spread(args.spread_scale)
     methods = [ModelMethod(spec, *load_denoiser(spec), "cpu") for spec in args.models]
     images = [e.folder for e in collect_images(args.roots, split=args.split)[0]]
     per: dict[str, list[tuple[float, float, float]]] = {}

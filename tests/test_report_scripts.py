@@ -564,3 +564,33 @@ def test_bias_variance_luminance_shares_add_up_and_follow_the_reference() -> Non
     assert np.allclose(s2[:, 0], [0, 1 / 16, 0, 15 / 16, 0])
     w = 1 / (0.05**2 + bv.EPS)
     assert np.allclose(s2[:, 1], [0, w * 0.01 / 16, 0, 0, 0]) and np.allclose(s2[:, 2], 0)
+
+
+def test_bias_variance_spread_scale_reaches_the_head_features(monkeypatch) -> None:
+    """Catches a --spread-scale that patches a copy the head never calls (refine_features looks the
+    function up in its module) or scales the halves' mean along with their difference: with K = 3
+    the features equal those of halves three times as far apart about the same mean, and K = 0
+    gives what agreeing halves give."""
+    import torch
+
+    from mcdenoise.models import refine
+
+    bv = load_script("bias_variance_probe")
+    monkeypatch.setattr(refine, "spread_features", refine.spread_features)  # undone after the test
+    orig = refine.spread_features
+    g = torch.Generator().manual_seed(0)
+    lum, a, b = (torch.rand(1, 1, 8, 8, generator=g) + 0.1 for _ in range(3))
+    mid = (a + b) / 2
+    bv.scale_spread(3.0)
+    assert torch.allclose(refine.spread_features(lum, a, b), orig(lum, mid + 3 * (a - mid), mid + 3 * (b - mid)))
+    # Through the head's feature function, with halves close enough that the scaled ones stay >= 0.
+    base, noisy, var, alb, nrm = (torch.rand(1, 3, 8, 8, generator=g) + 0.5 for _ in range(5))
+    ha, hb = base + 0.05 * torch.rand(1, 3, 8, 8, generator=g), base - 0.05 * torch.rand(1, 3, 8, 8, generator=g)
+    got = refine.refine_features(base, noisy, var, alb, nrm, None, halves=(ha, hb))
+    monkeypatch.setattr(refine, "spread_features", orig)
+    m3 = (ha + hb) / 2
+    want = refine.refine_features(base, noisy, var, alb, nrm, None, halves=(m3 + 3 * (ha - m3), m3 + 3 * (hb - m3)))
+    assert torch.allclose(got, want, atol=1e-6)
+    bv.scale_spread(0.0)
+    assert torch.allclose(refine.spread_features(lum, a, b), orig(lum, mid, mid))
+    assert float(refine.spread_features(lum, a, b).abs().max()) < 1e-12
