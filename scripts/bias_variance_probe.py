@@ -74,7 +74,11 @@ def split_maps(outputs: np.ndarray, ref: np.ndarray) -> tuple[np.ndarray, np.nda
 def split(outputs: np.ndarray, ref: np.ndarray) -> tuple[float, float, float]:
     """``outputs (n, 3, H, W)`` of disjoint sample sets, ``ref (3, H, W)`` -> (total, bias, variance):
     image means of the per-pixel terms of the module docstring; total = bias + variance."""
-    bias, var = split_maps(outputs, ref)
+    return parts(*split_maps(outputs, ref))
+
+
+def parts(bias: np.ndarray, var: np.ndarray) -> tuple[float, float, float]:
+    """Per-pixel maps -> (total, bias, variance) image means."""
     return float(bias.mean() + var.mean()), float(bias.mean()), float(var.mean())
 
 
@@ -143,8 +147,7 @@ def main(argv: list[str] | None = None) -> None:
                     outs.setdefault(meth.name, []).append(meth.run(meth.prepare(x)))
         for name, ys in outs.items():
             bias, var = split_maps(np.stack(ys), ref)
-            per.setdefault(name, []).append((float(bias.mean() + var.mean()), float(bias.mean()),
-                                             float(var.mean())))
+            per.setdefault(name, []).append(parts(bias, var))
             bins.setdefault(name, []).append(by_luminance(bias, var, ref))
     base = np.array(per[args.baseline])
     print(f"{len(images)} images, {args.spp} spp, {n} disjoint sample sets each; ratios to {args.baseline}, "
