@@ -9,6 +9,11 @@ field and hold bit-identical bases (the same start file: ``scripts/refine_init.p
 refuses with one line naming the file. The first member's head keeps the name ``net``; member i + 1's
 becomes ``extra_heads.i``. Prints what it wrote; refuses a file that would not load back.
 
+``--widen`` also admits members without the spread features (``RefineConfig.spread``) beside
+members with them: their head's first convolution gets zero weights for the spread channels (the
+last ones of the features), so it computes what it did, and the ensemble reads the spread
+(campaign 36: the shipped x2's heads beside the spread heads of campaign 35).
+
 ``--run DIR`` also writes a run folder that ``python -m mcdenoise.models.ship`` reads (the members must
 then be run folders): the first member's config.json with the ensemble's preset and model_config and
 the list of members, and a result.json whose wall and CPU seconds are the members' sums (the
@@ -41,20 +46,41 @@ def _full(cfg: dict) -> dict:
     return json.loads(json.dumps({**asdict(RefineConfig()), **cfg}, default=list))
 
 
-def ensemble(members: list[str], preset: str) -> tuple[dict[str, torch.Tensor], dict[str, str]]:
-    """Tensors and metadata of the ensemble of ``members`` (ValueError naming the member that differs)."""
+def _widened(name: str, t: torch.Tensor, want: torch.Size, f: Path) -> torch.Tensor:
+    """Head tensor ``t`` of member ``f`` shaped as the ensemble's ``want``: the first convolution of a
+    head without the spread features gets zero weights for them (the last N_SPREAD input channels)."""
+    from mcdenoise.models.refine import N_SPREAD
+
+    if t.shape == want:
+        return t
+    if t.dim() == len(want) and t.shape[0] == want[0] and t.shape[2:] == want[2:] and want[1] == t.shape[1] + N_SPREAD:
+        return torch.cat([t, t.new_zeros(t.shape[0], N_SPREAD, *t.shape[2:])], dim=1)
+    raise ValueError(f"{f}: tensor {name} has shape {tuple(t.shape)}, the ensemble's head needs {tuple(want)}")
+
+
+def ensemble(members: list[str], preset: str, widen: bool = False) -> tuple[dict[str, torch.Tensor], dict[str, str]]:
+    """Tensors and metadata of the ensemble of ``members`` (ValueError naming the member that differs).
+    With ``widen``, members may differ in ``spread`` (module docstring)."""
     if len(members) < 2:
         raise ValueError("an ensemble needs at least two members")
     files = [_weights_file(m) for m in members]
-    meta0, ten0 = read_weights(str(files[0]))
-    cfg0 = json.loads(meta0.get("model_config", "{}"))
-    if meta0.get("model") != "refine" or int(cfg0.get("heads", 1)) != 1:
-        raise ValueError(f"{files[0]}: not a one-head refine file")
-    out = dict(ten0)
-    for i, f in enumerate(files[1:]):
-        meta, ten = read_weights(str(f))
-        cfg = json.loads(meta.get("model_config", "{}"))
-        if meta.get("model") != "refine" or _full(cfg) != _full(cfg0):
+    read = [read_weights(str(f)) for f in files]
+    cfgs = [json.loads(meta.get("model_config", "{}")) for meta, _ in read]
+    for f, (meta, _), cfg in zip(files, read, cfgs):
+        if meta.get("model") != "refine" or int(cfg.get("heads", 1)) != 1:
+            raise ValueError(f"{f}: not a one-head refine file")
+    spread = any(bool(c.get("spread", False)) for c in cfgs) if widen else bool(cfgs[0].get("spread", False))
+    cfg = {**cfgs[0], "heads": len(files), **({"spread": spread} if widen else {})}
+    model = model_from_config("refine", preset, cfg)  # the preset and config must build the ensemble
+    want = model.state_dict()
+
+    def key(c: dict) -> dict:
+        return {**_full(c), "spread": spread} if widen else _full(c)
+
+    ten0 = read[0][1]
+    out: dict[str, torch.Tensor] = {}
+    for i, (f, (meta, ten), c) in enumerate(zip(files, read, cfgs)):
+        if key(c) != key(cfgs[0]):
             raise ValueError(f"{f}: its model or configuration differs from {files[0]}'s")
         if set(ten) != set(ten0):
             raise ValueError(f"{f}: tensor names differ from {files[0]}'s")
@@ -62,12 +88,12 @@ def ensemble(members: list[str], preset: str) -> tuple[dict[str, torch.Tensor], 
             if k.startswith("base."):
                 if not torch.equal(t, ten0[k]):
                     raise ValueError(f"{f}: base tensor {k} differs from {files[0]}'s (not the same frozen base)")
+                out[k] = t
             elif k.startswith("net."):
-                out[f"extra_heads.{i}.{k.removeprefix('net.')}"] = t
+                name = k if i == 0 else f"extra_heads.{i - 1}.{k.removeprefix('net.')}"
+                out[name] = _widened(k, t, want[name].shape, f)
             else:
                 raise ValueError(f"{f}: unexpected tensor {k}")
-    cfg = {**cfg0, "heads": len(files)}
-    model = model_from_config("refine", preset, cfg)  # the preset and config must build the ensemble
     model.load_state_dict(out, strict=True)
     meta = {"model": "refine", "preset": preset, "model_config": json.dumps(cfg),
             "ensemble_of": json.dumps([str(f) for f in files])}
@@ -108,9 +134,11 @@ def main() -> None:
     ap.add_argument("members", nargs="+", help="one-head refine run folders or .safetensors files")
     ap.add_argument("--preset", default="layer_medium_ctx_x2")
     ap.add_argument("--run", type=Path, help="also write this run folder for mcdenoise.models.ship")
+    ap.add_argument("--widen", action="store_true",
+                    help="admit members without the spread features beside members with them")
     a = ap.parse_args()
     try:
-        tensors, meta = ensemble(a.members, a.preset)
+        tensors, meta = ensemble(a.members, a.preset, a.widen)
         if a.run is not None:
             write_run(a.run, a.members, tensors, meta)
     except (ValueError, OSError, KeyError) as e:

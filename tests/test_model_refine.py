@@ -389,6 +389,48 @@ def test_ensemble_script_joins_members_over_one_base_and_refuses_another(tmp_pat
     assert info["preset"] == "small" and model.config.heads == 2
 
 
+def test_ensemble_script_widens_a_head_without_spread_to_what_it_computed(tmp_path: Path) -> None:
+    """Catches a widened head whose zero columns sit on the wrong input channels (it would read the
+    spread features as if they were its own, or shift every feature after the padding), and an
+    ensemble of heads with and without spread that forms without being asked (``--widen``)."""
+    import dataclasses
+    import json
+
+    from safetensors.torch import save_file
+
+    from mcdenoise.models.weights import load_denoiser
+    from repo_scripts import load_script
+
+    def save(m: torch.nn.Module, name: str) -> str:
+        cfg = json.loads(json.dumps(dataclasses.asdict(m.config), default=list))
+        path = tmp_path / name
+        save_file({k: v.float().contiguous() for k, v in m.state_dict().items()}, str(path),
+                  metadata={"model": "refine", "preset": "small", "model_config": json.dumps(cfg)})
+        return str(path)
+
+    plain, spread = _model(0, context=True).double().eval(), _model(0, context=True, spread=True).double().eval()
+    with torch.no_grad():
+        for i, m in enumerate((plain, spread)):
+            g = torch.Generator().manual_seed(40 + i)
+            for p in m.net.parameters():
+                p.copy_(torch.randn(p.shape, generator=g, dtype=p.dtype) * 0.3)
+    pa, pb = save(plain, "plain.safetensors"), save(spread, "spread.safetensors")
+    script = load_script("refine_ensemble")
+    with pytest.raises(ValueError, match="configuration differs"):
+        script.ensemble([pa, pb], "small")
+    for order in ([pa, pb], [pb, pa]):  # the head without spread first or second
+        tensors, meta = script.ensemble(order, "small", widen=True)
+        cfg = json.loads(meta["model_config"])
+        assert cfg["spread"] is True and cfg["heads"] == 2
+        dst = tmp_path / "ens.safetensors"
+        save_file(tensors, str(dst), metadata=meta)
+        ens, _ = load_denoiser(dst)
+        batch = synthetic_batch(ens, spp=4, height=16, width=16, generator=torch.Generator().manual_seed(13))
+        with torch.no_grad():
+            want = (plain.float()(batch) + spread.float()(batch)) / 2
+            torch.testing.assert_close(ens(batch), want, rtol=1e-5, atol=1e-6)
+
+
 def test_sample_halves_split_every_per_sample_tensor_and_nothing_else() -> None:
     """Catches halves that overlap or drop samples (even and odd must partition them), a per-pixel
     tensor sliced as if it had samples, and a split of a one-sample batch (no second opinion)."""
