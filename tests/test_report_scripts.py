@@ -594,3 +594,28 @@ def test_bias_variance_spread_scale_reaches_the_head_features(monkeypatch) -> No
     bv.scale_spread(0.0)
     assert torch.allclose(refine.spread_features(lum, a, b), orig(lum, mid, mid))
     assert float(refine.spread_features(lum, a, b).abs().max()) < 1e-12
+
+
+def test_kernel_noise_probe_modes_reduce_to_the_model_and_change_with_their_source() -> None:
+    """Catches a probe whose re-assembled forward drifts from the layer model's own (exposure, lights,
+    the consistency clamp or the kernels' inputs wired differently): with the set itself as the source
+    of the kernels or of the context every mode is the model's output. And catches modes that ignore
+    their source: another draw of the samples as the source must change the output."""
+    from mcdenoise.models.registry import build_model, synthetic_batch
+
+    kp = load_script("kernel_noise_probe")
+    torch.manual_seed(0)
+    model = build_model("layer", "small").double().eval()
+    model.config.consistency = 4.0  # the shipped layer-medium's clamp: the probe must apply it as forward does
+    b = synthetic_batch(model, spp=4, height=20, width=24, generator=torch.Generator().manual_seed(1))
+    other = synthetic_batch(model, spp=4, height=20, width=24, generator=torch.Generator().manual_seed(2))
+    b = {k: v.double() for k, v in b.items()}
+    other = {k: v.double() for k, v in other.items()}
+    other["radiance"] = b["radiance"] * (1 + 0.5 * torch.rand(b["radiance"].shape, generator=torch.Generator().manual_seed(3),
+                                                                  dtype=torch.float64))
+    with torch.no_grad():
+        want = model(b)
+        for kw in ({}, {"kernels_from": b}, {"context_from": b}, {"kernels_from": b, "context_from": b}):
+            torch.testing.assert_close(kp.layer_output(model, b, **kw), want, rtol=1e-10, atol=1e-12)
+        for kw in ({"kernels_from": other}, {"context_from": other}):
+            assert float((kp.layer_output(model, b, **kw) - want).abs().max()) > 1e-6

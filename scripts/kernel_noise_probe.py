@@ -1,0 +1,120 @@
+"""Where does a layer model's residual noise come from: the samples its kernels filter, or kernels
+that follow the noise? (campaign 36; evidence for the next base.)
+
+Campaign 35 found the per-sample models' gap to OIDN on the third-party scenes to be variance (noise
+left in the output), and that a second stage does not remove it. This probe splits the base's
+variance by what its kernels are computed from. Each image's samples are cut into ``n`` disjoint
+sets of ``--spp`` (as ``scripts/bias_variance_probe.py``); for set ``j`` the layer model
+(``layer-medium``) is run in three ways:
+
+- ``own``: as it is (its kernels read set ``j``, the samples they filter);
+- ``cross``: the layer sums of set ``j`` (Eq. 2: the samples' radiance, weights and occupancy per
+  layer) filtered with the kernels computed from set ``j + 1`` (its layer embeddings and context), so
+  the kernels know nothing of the noise they filter, and are as noisy themselves as in ``own``;
+- ``ctx_all``: the context U-Net reads every stored sample's mean embedding (16 spp), the rest set
+  ``j``: a nearly noise-free guide for the kernels.
+
+Each mode's outputs over the ``n`` sets give the bias/variance split of relMSE (same estimator as
+``bias_variance_probe.split``). Reading it: if ``cross`` has much less variance than ``own``, the
+kernels follow the noise of the samples they filter (a kernel built on one draw of the noise keeps
+part of it); if ``ctx_all`` has much less, the noise of the guide drives it; if neither, the kernels'
+footprint is what leaves the noise.
+
+    python scripts/kernel_noise_probe.py data/scene_inputs/*spp16_seed* --spp 4 --model layer-medium
+"""
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+import torch
+
+import mcdenoise  # noqa: F401  (sets up the package's defaults)
+from bias_variance_probe import SampleSet, parts, split_maps  # scripts/ is on the path when a script runs
+from mcdenoise.eval.images import collect_images
+from mcdenoise.eval.methods import Inputs, ModelMethod
+from mcdenoise.models.consistency import consistency_clamp
+from mcdenoise.models.emitters import batch_emitter_mask, fill_emitters, pass_through
+from mcdenoise.models.exposure import scale_batch, unscale
+from mcdenoise.models.layer import LayerDenoiser
+from mcdenoise.models.weights import load_denoiser
+
+MODES = ("own", "cross", "ctx_all")
+
+
+def _inner(model: LayerDenoiser, batch: dict[str, torch.Tensor], scale: torch.Tensor | None) -> dict[str, torch.Tensor]:
+    """``batch`` as the model's ``_denoise`` sees it: lights filled from their neighbours, at ``scale``."""
+    inner = dict(fill_emitters(batch, batch_emitter_mask(batch, model.config.channels)))
+    return inner if scale is None else scale_batch(inner, scale)
+
+
+def _embed(model: LayerDenoiser, batch: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(embeddings (B, S, E, H, W), radiance (B, S, 3, H, W))`` of the per-sample reducer."""
+    f, radiance = model.features(batch)
+    e = model.reducer(f)
+    return e, radiance.to(e.dtype)
+
+
+def layer_output(model: LayerDenoiser, batch: dict[str, torch.Tensor], kernels_from: dict[str, torch.Tensor] | None = None,
+                 context_from: dict[str, torch.Tensor] | None = None) -> torch.Tensor:
+    """``(B, 3, H, W)``: ``model``'s forward on ``batch`` (per-sample tensors ``(B, S, C, H, W)``),
+    except that the kernel logits are computed from ``kernels_from`` (another draw of the same
+    image's samples; its own layer embeddings and context) and/or the context U-Net reads
+    ``context_from``'s mean embedding. With neither it is ``model(batch)`` (tested). Every batch is
+    taken at ``batch``'s exposure scale; lights and the consistency clamp follow ``batch``."""
+    cfg = model.config
+    if cfg.hierarchical:
+        raise ValueError("kernel_noise_probe: a hierarchical layer model is not supported")
+    s = model.exposure_of(batch)
+    e, radiance = _embed(model, _inner(model, batch, s))
+    ctx = model._unet(_embed(model, _inner(model, context_from, s))[0].mean(dim=1) if context_from is not None
+                      else e.mean(dim=1))[0]
+    l_rad, l_w, l_n, l_emb = model.partition(e, ctx, radiance)
+    if kernels_from is not None:
+        ek, rk = _embed(model, _inner(model, kernels_from, s))
+        ctx_k = ctx if context_from is not None else model._unet(ek.mean(dim=1))[0]
+        l_emb, ctx = model.partition(ek, ctx_k, rk)[3], ctx_k
+    out = model._filter(model.kernel_gen(l_emb, ctx), l_rad, l_w, l_n)
+    out = pass_through(unscale(out, s), batch["radiance"], batch_emitter_mask(batch, cfg.channels))
+    return consistency_clamp(out, batch["radiance"], cfg.consistency, cfg.consistency_min_spp, cfg.consistency_box)
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("roots", nargs="+", help="datasets (their --split images) or image folders")
+    ap.add_argument("--model", default="layer-medium", help="a layer model (shipped name, run folder or file)")
+    ap.add_argument("--split", default="val")
+    ap.add_argument("--spp", type=int, default=4)
+    args = ap.parse_args(argv)
+    model, info = load_denoiser(args.model)
+    if not isinstance(model, LayerDenoiser):
+        raise SystemExit(f"kernel_noise_probe: {args.model} is not a layer model")
+    meth = ModelMethod(args.model, model.eval(), info, "cpu")
+    images = [e.folder for e in collect_images(args.roots, split=args.split)[0]]
+    per: dict[str, list[tuple[float, float, float]]] = {}
+    for im in images:
+        n = im.meta.spp // args.spp
+        if n < 2 or im.samples is None:
+            raise SystemExit(f"{im.path}: needs per-sample data with at least {2 * args.spp} samples")
+        ref = im.read_reference(["radiance"])["radiance"]
+        sets = [meth.prepare(Inputs(SampleSet(im, j * args.spp), args.spp)) for j in range(n)]
+        whole = meth.prepare(Inputs(im, n * args.spp))
+        outs: dict[str, list[np.ndarray]] = {m: [] for m in MODES}
+        with torch.inference_mode():
+            for j, b in enumerate(sets):
+                outs["own"].append(layer_output(model, b)[0].float().numpy())
+                outs["cross"].append(layer_output(model, b, kernels_from=sets[(j + 1) % n])[0].float().numpy())
+                outs["ctx_all"].append(layer_output(model, b, context_from=whole)[0].float().numpy())
+        for mode, ys in outs.items():
+            per.setdefault(mode, []).append(parts(*split_maps(np.stack(ys), ref)))
+    print(f"{args.model}: {len(images)} images, {args.spp} spp, {n} disjoint sample sets each; mean over images")
+    print(f"{'mode':10s} {'total':>9s} {'bias':>9s} {'variance':>9s} | variance / own's")
+    own = np.array(per["own"])
+    for mode in MODES:
+        v = np.array(per[mode])
+        print(f"{mode:10s} {v[:, 0].mean():9.5f} {v[:, 1].mean():9.5f} {v[:, 2].mean():9.5f} | "
+              f"{v[:, 2].mean() / own[:, 2].mean():6.3f}")
+
+
+if __name__ == "__main__":
+    main()
