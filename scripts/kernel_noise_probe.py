@@ -12,7 +12,10 @@ sets of ``--spp`` (as ``scripts/bias_variance_probe.py``); for set ``j`` the lay
   layer) filtered with the kernels computed from set ``j + 1`` (its layer embeddings and context), so
   the kernels know nothing of the noise they filter, and are as noisy themselves as in ``own``;
 - ``ctx_all``: the context U-Net reads every stored sample's mean embedding (16 spp), the rest set
-  ``j``: a nearly noise-free guide for the kernels.
+  ``j``: a nearly noise-free guide for the kernels (not a method: it reads 4x the samples);
+- ``ctx_box``, ``ctx_guided``: the context U-Net reads set ``j``'s mean embedding smoothed over 3x3
+  pixels, plainly or weighted by how alike the pixels' mean albedo and normal are (5x5,
+  :func:`guided_smooth`): what a 4-spp method could do in ``ctx_all``'s direction without training.
 
 Each mode's outputs over the ``n`` sets give the bias/variance split of relMSE (same estimator as
 ``bias_variance_probe.split``). Reading it: if ``cross`` has much less variance than ``own``, the
@@ -25,21 +28,47 @@ footprint is what leaves the noise.
 from __future__ import annotations
 
 import argparse
+from typing import Callable
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 
 import mcdenoise  # noqa: F401  (sets up the package's defaults)
 from bias_variance_probe import SampleSet, parts, split_maps  # scripts/ is on the path when a script runs
 from mcdenoise.eval.images import collect_images
 from mcdenoise.eval.methods import Inputs, ModelMethod
 from mcdenoise.models.consistency import consistency_clamp
-from mcdenoise.models.emitters import batch_emitter_mask, fill_emitters, pass_through
+from mcdenoise.models.emitters import as_reflectance, batch_emitter_mask, fill_emitters, pass_through
 from mcdenoise.models.exposure import scale_batch, unscale
 from mcdenoise.models.layer import LayerDenoiser
 from mcdenoise.models.weights import load_denoiser
 
-MODES = ("own", "cross", "ctx_all")
+MODES = ("own", "cross", "ctx_all", "ctx_box", "ctx_guided")
+#: Scale of the guide distance in :func:`guided_smooth` (albedo in [0, 1], unit normals): a pixel whose
+#: albedo or normal differs by 0.1 weighs exp(-1/2) of an identical one. Set before any measurement.
+GUIDE_SIGMA = 0.1
+
+
+def box_smooth(x: torch.Tensor, r: int = 1) -> torch.Tensor:
+    """``x`` (B, C, H, W) averaged over (2r+1)^2 pixels, edges replicated."""
+    return F.avg_pool2d(F.pad(x, (r, r, r, r), mode="replicate"), 2 * r + 1, stride=1)
+
+
+def guided_smooth(x: torch.Tensor, guide: torch.Tensor, r: int = 2, sigma: float = GUIDE_SIGMA) -> torch.Tensor:
+    """``x`` (B, C, H, W) averaged over (2r+1)^2 pixels with weights ``exp(-|g_q - g_p|^2 / (2 sigma^2))``,
+    ``guide`` (B, G, H, W); edges replicated. A constant ``x`` stays constant (weights normalised)."""
+    k = 2 * r + 1
+    b, c, h, w = x.shape
+    xs = F.unfold(F.pad(x, (r, r, r, r), mode="replicate"), k).view(b, c, k * k, h, w)
+    gs = F.unfold(F.pad(guide, (r, r, r, r), mode="replicate"), k).view(b, guide.shape[1], k * k, h, w)
+    wt = torch.exp(-((gs - guide.unsqueeze(2)) ** 2).sum(dim=1, keepdim=True) / (2 * sigma * sigma))
+    return (xs * wt).sum(dim=2) / wt.sum(dim=2)
+
+
+def pixel_guide(batch: dict[str, torch.Tensor]) -> torch.Tensor:
+    """(B, 6, H, W): the samples' mean reflectance (albedo, clamped to [0, 1]) and mean normal."""
+    return torch.cat([as_reflectance(batch["albedo"].mean(dim=1)).clamp(0, 1), batch["normal"].mean(dim=1)], dim=1)
 
 
 def _inner(model: LayerDenoiser, batch: dict[str, torch.Tensor], scale: torch.Tensor | None) -> dict[str, torch.Tensor]:
@@ -56,19 +85,21 @@ def _embed(model: LayerDenoiser, batch: dict[str, torch.Tensor]) -> tuple[torch.
 
 
 def layer_output(model: LayerDenoiser, batch: dict[str, torch.Tensor], kernels_from: dict[str, torch.Tensor] | None = None,
-                 context_from: dict[str, torch.Tensor] | None = None) -> torch.Tensor:
+                 context_from: dict[str, torch.Tensor] | None = None,
+                 context_filter: Callable[[torch.Tensor], torch.Tensor] | None = None) -> torch.Tensor:
     """``(B, 3, H, W)``: ``model``'s forward on ``batch`` (per-sample tensors ``(B, S, C, H, W)``),
     except that the kernel logits are computed from ``kernels_from`` (another draw of the same
     image's samples; its own layer embeddings and context) and/or the context U-Net reads
-    ``context_from``'s mean embedding. With neither it is ``model(batch)`` (tested). Every batch is
+    ``context_from``'s mean embedding, and/or that mean embedding (B, E, H, W) goes through
+    ``context_filter`` first. With none of them it is ``model(batch)`` (tested). Every batch is
     taken at ``batch``'s exposure scale; lights and the consistency clamp follow ``batch``."""
     cfg = model.config
     if cfg.hierarchical:
         raise ValueError("kernel_noise_probe: a hierarchical layer model is not supported")
     s = model.exposure_of(batch)
     e, radiance = _embed(model, _inner(model, batch, s))
-    ctx = model._unet(_embed(model, _inner(model, context_from, s))[0].mean(dim=1) if context_from is not None
-                      else e.mean(dim=1))[0]
+    mean = _embed(model, _inner(model, context_from, s))[0].mean(dim=1) if context_from is not None else e.mean(dim=1)
+    ctx = model._unet(mean if context_filter is None else context_filter(mean))[0]
     l_rad, l_w, l_n, l_emb = model.partition(e, ctx, radiance)
     if kernels_from is not None:
         ek, rk = _embed(model, _inner(model, kernels_from, s))
@@ -105,6 +136,10 @@ def main(argv: list[str] | None = None) -> None:
                 outs["own"].append(layer_output(model, b)[0].float().numpy())
                 outs["cross"].append(layer_output(model, b, kernels_from=sets[(j + 1) % n])[0].float().numpy())
                 outs["ctx_all"].append(layer_output(model, b, context_from=whole)[0].float().numpy())
+                outs["ctx_box"].append(layer_output(model, b, context_filter=box_smooth)[0].float().numpy())
+                g = pixel_guide(b)
+                outs["ctx_guided"].append(layer_output(model, b, context_filter=lambda m: guided_smooth(m, g))[0]
+                                          .float().numpy())
         for mode, ys in outs.items():
             per.setdefault(mode, []).append(parts(*split_maps(np.stack(ys), ref)))
     print(f"{args.model}: {len(images)} images, {args.spp} spp, {n} disjoint sample sets each; mean over images")

@@ -617,5 +617,23 @@ def test_kernel_noise_probe_modes_reduce_to_the_model_and_change_with_their_sour
         want = model(b)
         for kw in ({}, {"kernels_from": b}, {"context_from": b}, {"kernels_from": b, "context_from": b}):
             torch.testing.assert_close(kp.layer_output(model, b, **kw), want, rtol=1e-10, atol=1e-12)
-        for kw in ({"kernels_from": other}, {"context_from": other}):
+        torch.testing.assert_close(kp.layer_output(model, b, context_filter=lambda m: m), want, rtol=1e-10, atol=1e-12)
+        for kw in ({"kernels_from": other}, {"context_from": other}, {"context_filter": kp.box_smooth}):
             assert float((kp.layer_output(model, b, **kw) - want).abs().max()) > 1e-6
+
+
+def test_kernel_noise_probe_guided_smooth_keeps_constants_and_edges() -> None:
+    """Catches unnormalised weights (a constant embedding would change) and weights that ignore the
+    guide (a step in the guide, e.g. an object's silhouette, would be smoothed across)."""
+    kp = load_script("kernel_noise_probe")
+    g = torch.Generator().manual_seed(0)
+    guide = torch.rand(1, 6, 9, 10, generator=g, dtype=torch.float64)
+    const = torch.full((1, 4, 9, 10), 2.5, dtype=torch.float64)
+    torch.testing.assert_close(kp.guided_smooth(const, guide), const)
+    torch.testing.assert_close(kp.box_smooth(const), const)
+    step = torch.zeros(1, 1, 9, 10, dtype=torch.float64)
+    step[..., 5:] = 1.0
+    x = step.expand(1, 3, 9, 10) + 0.01 * torch.randn(1, 3, 9, 10, generator=g, dtype=torch.float64)
+    out = kp.guided_smooth(x, step.expand(1, 6, 9, 10) * 5)  # a guide step of 5, 50 sigma
+    assert float((out - step).abs().max()) < 0.05  # each side keeps its own level
+    assert float((kp.box_smooth(x) - step).abs().max()) > 0.3  # the plain box crosses the step
