@@ -15,7 +15,10 @@ sets of ``--spp`` (as ``scripts/bias_variance_probe.py``); for set ``j`` the lay
   ``j``: a nearly noise-free guide for the kernels (not a method: it reads 4x the samples);
 - ``ctx_box``, ``ctx_guided``: the context U-Net reads set ``j``'s mean embedding smoothed over 3x3
   pixels, plainly or weighted by how alike the pixels' mean albedo and normal are (5x5,
-  :func:`guided_smooth`): what a 4-spp method could do in ``ctx_all``'s direction without training.
+  :func:`guided_smooth`): what a 4-spp method could do in ``ctx_all``'s direction without training;
+- ``ctx_pass1``: the context U-Net reads the mean embedding of set ``j``'s samples with their
+  radiance replaced by the model's own output on set ``j`` (a second pass whose guide is the first
+  pass's denoised image; samples the network never saw, which agree exactly).
 
 Each mode's outputs over the ``n`` sets give the bias/variance split of relMSE (same estimator as
 ``bias_variance_probe.split``). Reading it: if ``cross`` has much less variance than ``own``, the
@@ -44,7 +47,7 @@ from mcdenoise.models.exposure import scale_batch, unscale
 from mcdenoise.models.layer import LayerDenoiser
 from mcdenoise.models.weights import load_denoiser
 
-MODES = ("own", "cross", "ctx_all", "ctx_box", "ctx_guided")
+MODES = ("own", "cross", "ctx_all", "ctx_box", "ctx_guided", "ctx_pass1")
 #: Scale of the guide distance in :func:`guided_smooth` (albedo in [0, 1], unit normals): a pixel whose
 #: albedo or normal differs by 0.1 weighs exp(-1/2) of an identical one. Set before any measurement.
 GUIDE_SIGMA = 0.1
@@ -116,7 +119,9 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--model", default="layer-medium", help="a layer model (shipped name, run folder or file)")
     ap.add_argument("--split", default="val")
     ap.add_argument("--spp", type=int, default=4)
+    ap.add_argument("--modes", nargs="+", choices=MODES, default=list(MODES), help="which modes run (own always does)")
     args = ap.parse_args(argv)
+    modes = ["own"] + [m for m in args.modes if m != "own"]
     model, info = load_denoiser(args.model)
     if not isinstance(model, LayerDenoiser):
         raise SystemExit(f"kernel_noise_probe: {args.model} is not a layer model")
@@ -129,26 +134,29 @@ def main(argv: list[str] | None = None) -> None:
             raise SystemExit(f"{im.path}: needs per-sample data with at least {2 * args.spp} samples")
         ref = im.read_reference(["radiance"])["radiance"]
         sets = [meth.prepare(Inputs(SampleSet(im, j * args.spp), args.spp)) for j in range(n)]
-        whole = meth.prepare(Inputs(im, n * args.spp))
-        outs: dict[str, list[np.ndarray]] = {m: [] for m in MODES}
+        whole = meth.prepare(Inputs(im, n * args.spp)) if "ctx_all" in modes else None
+        outs: dict[str, list[np.ndarray]] = {m: [] for m in modes}
         with torch.inference_mode():
             for j, b in enumerate(sets):
-                outs["own"].append(layer_output(model, b)[0].float().numpy())
-                outs["cross"].append(layer_output(model, b, kernels_from=sets[(j + 1) % n])[0].float().numpy())
-                outs["ctx_all"].append(layer_output(model, b, context_from=whole)[0].float().numpy())
-                outs["ctx_box"].append(layer_output(model, b, context_filter=box_smooth)[0].float().numpy())
                 g = pixel_guide(b)
-                outs["ctx_guided"].append(layer_output(model, b, context_filter=lambda m: guided_smooth(m, g))[0]
-                                          .float().numpy())
+                kw = {"own": {}, "cross": {"kernels_from": sets[(j + 1) % n]}, "ctx_all": {"context_from": whole},
+                      "ctx_box": {"context_filter": box_smooth},
+                      "ctx_guided": {"context_filter": lambda m, g=g: guided_smooth(m, g)}}
+                own = layer_output(model, b)
+                if "ctx_pass1" in modes:
+                    kw["ctx_pass1"] = {"context_from": {**b, "radiance": own.unsqueeze(1).expand_as(b["radiance"])}}
+                for mode in modes:
+                    outs[mode].append((own if mode == "own" else layer_output(model, b, **kw[mode]))[0].float().numpy())
         for mode, ys in outs.items():
             per.setdefault(mode, []).append(parts(*split_maps(np.stack(ys), ref)))
     print(f"{args.model}: {len(images)} images, {args.spp} spp, {n} disjoint sample sets each; mean over images")
-    print(f"{'mode':10s} {'total':>9s} {'bias':>9s} {'variance':>9s} | variance / own's")
+    print(f"{'mode':10s} {'total':>9s} {'bias':>9s} {'variance':>9s} | variance / own's | total / own's, geo mean of images")
     own = np.array(per["own"])
-    for mode in MODES:
+    for mode in modes:
         v = np.array(per[mode])
+        geo = float(np.exp(np.log(v[:, 0] / own[:, 0]).mean()))
         print(f"{mode:10s} {v[:, 0].mean():9.5f} {v[:, 1].mean():9.5f} {v[:, 2].mean():9.5f} | "
-              f"{v[:, 2].mean() / own[:, 2].mean():6.3f}")
+              f"{v[:, 2].mean() / own[:, 2].mean():15.3f} | {geo:6.3f}")
 
 
 if __name__ == "__main__":
