@@ -18,7 +18,10 @@ sets of ``--spp`` (as ``scripts/bias_variance_probe.py``); for set ``j`` the lay
   :func:`guided_smooth`): what a 4-spp method could do in ``ctx_all``'s direction without training;
 - ``ctx_pass1``: the context U-Net reads the mean embedding of set ``j``'s samples with their
   radiance replaced by the model's own output on set ``j`` (a second pass whose guide is the first
-  pass's denoised image; samples the network never saw, which agree exactly).
+  pass's denoised image; samples the network never saw, which agree exactly);
+- ``ctx_shift``: the same, but each sample keeps its deviation from the samples' mean (its radiance
+  is the first pass's output plus that deviation), so the context still sees how noisy the samples
+  are, about a clean mean.
 
 Each mode's outputs over the ``n`` sets give the bias/variance split of relMSE (same estimator as
 ``bias_variance_probe.split``). Reading it: if ``cross`` has much less variance than ``own``, the
@@ -47,7 +50,7 @@ from mcdenoise.models.exposure import scale_batch, unscale
 from mcdenoise.models.layer import LayerDenoiser
 from mcdenoise.models.weights import load_denoiser
 
-MODES = ("own", "cross", "ctx_all", "ctx_box", "ctx_guided", "ctx_pass1")
+MODES = ("own", "cross", "ctx_all", "ctx_box", "ctx_guided", "ctx_pass1", "ctx_shift")
 #: Scale of the guide distance in :func:`guided_smooth` (albedo in [0, 1], unit normals): a pixel whose
 #: albedo or normal differs by 0.1 weighs exp(-1/2) of an identical one. Set before any measurement.
 GUIDE_SIGMA = 0.1
@@ -67,6 +70,12 @@ def guided_smooth(x: torch.Tensor, guide: torch.Tensor, r: int = 2, sigma: float
     gs = F.unfold(F.pad(guide, (r, r, r, r), mode="replicate"), k).view(b, guide.shape[1], k * k, h, w)
     wt = torch.exp(-((gs - guide.unsqueeze(2)) ** 2).sum(dim=1, keepdim=True) / (2 * sigma * sigma))
     return (xs * wt).sum(dim=2) / wt.sum(dim=2)
+
+
+def shifted_samples(radiance: torch.Tensor, mean: torch.Tensor) -> torch.Tensor:
+    """``radiance`` (B, S, 3, H, W) moved so that its mean over samples is ``mean`` (B, 3, H, W): each
+    sample keeps its deviation from the samples' own mean."""
+    return radiance - radiance.mean(dim=1, keepdim=True) + mean.unsqueeze(1)
 
 
 def pixel_guide(batch: dict[str, torch.Tensor]) -> torch.Tensor:
@@ -145,6 +154,8 @@ def main(argv: list[str] | None = None) -> None:
                 own = layer_output(model, b)
                 if "ctx_pass1" in modes:
                     kw["ctx_pass1"] = {"context_from": {**b, "radiance": own.unsqueeze(1).expand_as(b["radiance"])}}
+                if "ctx_shift" in modes:
+                    kw["ctx_shift"] = {"context_from": {**b, "radiance": shifted_samples(b["radiance"], own)}}
                 for mode in modes:
                     outs[mode].append((own if mode == "own" else layer_output(model, b, **kw[mode]))[0].float().numpy())
         for mode, ys in outs.items():

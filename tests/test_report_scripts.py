@@ -637,3 +637,15 @@ def test_kernel_noise_probe_guided_smooth_keeps_constants_and_edges() -> None:
     out = kp.guided_smooth(x, step.expand(1, 6, 9, 10) * 5)  # a guide step of 5, 50 sigma
     assert float((out - step).abs().max()) < 0.05  # each side keeps its own level
     assert float((kp.box_smooth(x) - step).abs().max()) > 0.3  # the plain box crosses the step
+
+
+def test_kernel_noise_probe_shifted_samples_keep_their_spread_about_the_new_mean() -> None:
+    """Catches a shift that rescales the samples (the context would read another noise level) or
+    misses the new mean."""
+    kp = load_script("kernel_noise_probe")
+    g = torch.Generator().manual_seed(0)
+    rad = torch.rand(2, 5, 3, 4, 6, generator=g, dtype=torch.float64)
+    mean = torch.rand(2, 3, 4, 6, generator=g, dtype=torch.float64)
+    out = kp.shifted_samples(rad, mean)
+    torch.testing.assert_close(out.mean(dim=1), mean)
+    torch.testing.assert_close(out - out.mean(dim=1, keepdim=True), rad - rad.mean(dim=1, keepdim=True))
