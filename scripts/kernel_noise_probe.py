@@ -47,7 +47,7 @@ from mcdenoise.eval.methods import Inputs, ModelMethod
 from mcdenoise.models.consistency import consistency_clamp
 from mcdenoise.models.emitters import as_reflectance, batch_emitter_mask, fill_emitters, pass_through
 from mcdenoise.models.exposure import scale_batch, unscale
-from mcdenoise.models.layer import LayerDenoiser
+from mcdenoise.models.layer import LayerDenoiser, shifted_samples
 from mcdenoise.models.weights import load_denoiser
 
 MODES = ("own", "cross", "ctx_all", "ctx_box", "ctx_guided", "ctx_pass1", "ctx_shift")
@@ -70,12 +70,6 @@ def guided_smooth(x: torch.Tensor, guide: torch.Tensor, r: int = 2, sigma: float
     gs = F.unfold(F.pad(guide, (r, r, r, r), mode="replicate"), k).view(b, guide.shape[1], k * k, h, w)
     wt = torch.exp(-((gs - guide.unsqueeze(2)) ** 2).sum(dim=1, keepdim=True) / (2 * sigma * sigma))
     return (xs * wt).sum(dim=2) / wt.sum(dim=2)
-
-
-def shifted_samples(radiance: torch.Tensor, mean: torch.Tensor) -> torch.Tensor:
-    """``radiance`` (B, S, 3, H, W) moved so that its mean over samples is ``mean`` (B, 3, H, W): each
-    sample keeps its deviation from the samples' own mean."""
-    return radiance - radiance.mean(dim=1, keepdim=True) + mean.unsqueeze(1)
 
 
 def pixel_guide(batch: dict[str, torch.Tensor]) -> torch.Tensor:

@@ -33,9 +33,10 @@ def identity_kernels(model) -> None:
 
 
 @pytest.mark.parametrize("name", NAMES)
-def test_permutation_invariance(name: str) -> None:
+@pytest.mark.parametrize("passes", [1, 2])
+def test_permutation_invariance(name: str, passes: int) -> None:
     torch.manual_seed(0)
-    model = build_model(name, "small").eval()
+    model = build_model(name, "small", passes=passes).eval()
     batch = synthetic_batch(model, spp=5, height=12, width=10)
     with torch.no_grad():
         y = model(batch)
@@ -371,13 +372,16 @@ def test_paper_timed_unet_fits_the_papers_timing() -> None:
 
 
 @pytest.mark.parametrize("name", NAMES)
-def test_row_banded_inference_matches_whole_image(name: str, monkeypatch: pytest.MonkeyPatch) -> None:
+@pytest.mark.parametrize("passes", [1, 2])
+def test_row_banded_inference_matches_whole_image(name: str, passes: int, monkeypatch: pytest.MonkeyPatch) -> None:
     """Catches: a band seam in the memory-bounded inference path (issue 8 item 12): kernels
     splatting across a band boundary lost or counted twice, a shift that differs between the
     two passes, the partition of one band reading another band's context, Eq. 10 weights
-    collected from the wrong pass. Bands of a few rows (the budget shrunk) against one band."""
+    collected from the wrong pass. Bands of a few rows (the budget shrunk) against one band.
+    With two runs (``passes``), also a banded context that reads the kept embeddings of the
+    samples as given instead of the moved ones."""
     torch.manual_seed(0)
-    model = build_model(name, "small").double().eval()
+    model = build_model(name, "small", passes=passes).double().eval()
     batch = synthetic_batch(model, spp=3, height=21, width=10, dtype=torch.float64)
     with torch.no_grad():
         whole = model(batch)
@@ -486,3 +490,39 @@ def test_sample_weighted_sum_equals_einsum_and_inference_equals_training_path() 
         fast = model(batch)
     ref = model(batch).detach()
     assert rel_diff(fast, ref) <= 1e-12
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_second_pass_reads_its_context_from_samples_moved_to_the_first_output(name: str) -> None:
+    """Catches a second run whose context reads the samples as given (it would repeat the first
+    run), moved samples that lose their spread or miss the first output, and a second run whose
+    kernels filter the moved samples instead of the samples as given: it must equal the first
+    run's network with its U-Net fed the moved samples' mean embedding, built by hand here."""
+    torch.manual_seed(0)
+    one = build_model(name, "small", consistency=4.0, autoexposure=0.18).double().eval()
+    two = build_model(name, "small", consistency=4.0, autoexposure=0.18, passes=2).double().eval()
+    two.load_state_dict(one.state_dict())
+    batch = synthetic_batch(one, spp=4, height=12, width=10, dtype=torch.float64)
+    with torch.no_grad():
+        first = one(batch)
+        got = two(batch)
+        moved = {**batch, "radiance": layer_module.shifted_samples(batch["radiance"], first)}
+        s = one.exposure_of(batch)
+        seen = []
+        orig = one._unet
+
+        def unet_of_moved(mean: torch.Tensor):  # the U-Net's input in the one-pass model, replaced
+            seen.append(mean)
+            e = one.reducer(one.features(layer_module.scale_batch(dict(moved), s))[0])
+            return orig(e.mean(dim=1))
+
+        one._unet = unet_of_moved
+        want = one(batch)
+    assert seen and rel_diff(got, want) <= 1e-10
+    assert rel_diff(got, first) > 1e-4  # the second run changes the output
+    torch.testing.assert_close(moved["radiance"].mean(dim=1), first)
+
+
+def test_passes_must_be_at_least_one() -> None:
+    with pytest.raises(ValueError, match="passes must be >= 1"):
+        build_model("layer", "small", passes=0)

@@ -45,7 +45,7 @@ from mcdenoise.models.exposure import check_key, scale_batch, unscale
 from mcdenoise.ops.composite import composite_layers, gather_layer_sums, splat_layer_sums
 from mcdenoise.ops.multiscale import build_pyramid, combine_levels
 
-__all__ = ["LayerConfig", "LayerDenoiser", "LAYER_CHANNELS"]
+__all__ = ["LayerConfig", "LayerDenoiser", "LAYER_CHANNELS", "shifted_samples"]
 
 
 _LOG_CHANNELS = frozenset({"radiance", "diffuse", "specular", "depth", "depth_diffuse"})
@@ -59,6 +59,12 @@ _BAND_ELEMS = 1 << 26
 _KEEP_BYTES = 1 << 30
 _FOCUS = SCENE_FEATURES.index("focus_distance")
 
+
+
+def shifted_samples(radiance: torch.Tensor, mean: torch.Tensor) -> torch.Tensor:
+    """``radiance`` (B, S, 3, H, W) moved so that its mean over samples is ``mean`` (B, 3, H, W): each
+    sample keeps its deviation from the samples' own mean (``LayerConfig.passes``)."""
+    return radiance - radiance.mean(dim=1, keepdim=True) + mean.unsqueeze(1).to(radiance.dtype)
 
 
 def _sample_weighted_sum(w: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
@@ -99,6 +105,8 @@ class LayerDenoiser(Denoiser):
             raise ValueError(f"compositing must be 'alpha' or 'weighted', got {cfg.compositing!r}")
         if cfg.kernel_size % 2 != 1:
             raise ValueError(f"kernel_size must be odd, got {cfg.kernel_size}")
+        if cfg.passes < 1:
+            raise ValueError(f"passes must be >= 1, got {cfg.passes}")
         n_in = sum(num_components(c) for c in cfg.channels) + int(cfg.circle_of_confusion)
         self.input_features = n_in
         e = cfg.embed_width
@@ -222,17 +230,28 @@ class LayerDenoiser(Denoiser):
 
     def forward(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
         """Denoise: per-sample buffers -> ``(B, 3, H, W)`` linear radiance."""
-        emitters = batch_emitter_mask(batch, self.config.channels)
-        s = self.exposure_of(batch)  # of the image as given (mcdenoise.models.exposure)
-        inner = fill_emitters(batch, emitters)
-        out = self._denoise(inner if s is None else scale_batch(inner, s))  # type: ignore[arg-type]
-        out = pass_through(unscale(out, s), batch["radiance"], emitters)
-        return consistency_clamp(out, batch["radiance"], self.config.consistency, self.config.consistency_min_spp,
-                                 self.config.consistency_box)
-
-    def _denoise(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
         cfg = self.config
-        ctx, decoded, (l_rad, l_w, l_n, l_emb) = self._layer_sums(batch)
+        emitters = batch_emitter_mask(batch, cfg.channels)
+        s = self.exposure_of(batch)  # of the image as given (mcdenoise.models.exposure)
+
+        def prepared(b: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+            inner = fill_emitters(b, emitters)
+            return inner if s is None else scale_batch(inner, s)  # type: ignore[arg-type]
+
+        inner = prepared(batch)
+        out: torch.Tensor | None = None
+        for _ in range(cfg.passes):
+            # Later passes: the context reads the samples moved to the previous output (LayerConfig.passes).
+            ctx_batch = None if out is None else prepared({**batch, "radiance": shifted_samples(batch["radiance"], out)})
+            out = pass_through(unscale(self._denoise(inner, ctx_batch), s), batch["radiance"], emitters)
+            out = consistency_clamp(out, batch["radiance"], cfg.consistency, cfg.consistency_min_spp, cfg.consistency_box)
+        assert out is not None
+        return out
+
+    def _denoise(self, batch: dict[str, torch.Tensor], ctx_batch: dict[str, torch.Tensor] | None = None) -> torch.Tensor:
+        """``batch`` at the exposure scale -> (B, 3, H, W); the context from ``ctx_batch``'s samples when given."""
+        cfg = self.config
+        ctx, decoded, (l_rad, l_w, l_n, l_emb) = self._layer_sums(batch, ctx_batch)
         if not cfg.hierarchical:
 
             def logits(y0: int, y1: int, l_emb: torch.Tensor = l_emb, ctx: torch.Tensor = ctx) -> torch.Tensor:
@@ -243,7 +262,7 @@ class LayerDenoiser(Denoiser):
         return self._forward_hierarchical(ctx, decoded, l_rad, l_w, l_n, l_emb)
 
     def _layer_sums(
-        self, batch: dict[str, torch.Tensor]
+        self, batch: dict[str, torch.Tensor], ctx_batch: dict[str, torch.Tensor] | None = None
     ) -> tuple[torch.Tensor, list[torch.Tensor], tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]]:
         """Per-sample networks, U-Net and Eq. 2: ``(context (B, Cc, H, W), U-Net decoder features
         (hierarchical only, else []), (l_rad, l_w, l_n, l_emb))`` as :meth:`partition` returns.
@@ -252,7 +271,8 @@ class LayerDenoiser(Denoiser):
         per-sample work runs in row bands, twice (once for the mean embedding the U-Net needs,
         once for the partition, which needs the U-Net's context): no (B, S, C, H, W) tensor
         besides the inputs then exists (at 1080p, 8 spp: 2.1 GB each, 8.5 GB at 32 spp), for
-        twice the per-sample compute.
+        twice the per-sample compute. With ``ctx_batch`` (same shapes), the U-Net reads the mean
+        embedding of its samples instead of ``batch``'s.
         """
         cfg = self.config
         b, s, _, h, w = batch["radiance"].shape
@@ -263,11 +283,12 @@ class LayerDenoiser(Denoiser):
             f, radiance = self.features(batch)
             e = self.reducer(f)
             radiance = radiance.to(e.dtype)
-            ctx, decoded = self._unet(e.mean(dim=1))
+            src = e if ctx_batch is None else self.reducer(self.features(ctx_batch)[0])
+            ctx, decoded = self._unet(src.mean(dim=1))
             return ctx, decoded, self.partition(e, ctx, radiance)
 
-        def band(y0: int, y1: int) -> dict[str, torch.Tensor]:
-            return {n: (v[..., y0:y1, :] if v.dim() == 5 else v) for n, v in batch.items()}
+        def band(y0: int, y1: int, of: dict[str, torch.Tensor] = batch) -> dict[str, torch.Tensor]:
+            return {n: (v[..., y0:y1, :] if v.dim() == 5 else v) for n, v in of.items()}
 
         # The reducer's embeddings (E channels, fewer than the F input features) are kept between
         # the two passes when they fit _KEEP_BYTES, so the second pass does not recompute the
@@ -278,9 +299,12 @@ class LayerDenoiser(Denoiser):
         mean = None
         for y0 in range(0, h, rows):
             y1 = min(h, y0 + rows)
-            e = self.reducer(self.features(band(y0, y1))[0])
-            if kept is not None:
-                kept[..., y0:y1, :] = e
+            if kept is not None or ctx_batch is None:
+                e = self.reducer(self.features(band(y0, y1))[0])
+                if kept is not None:
+                    kept[..., y0:y1, :] = e
+            if ctx_batch is not None:
+                e = self.reducer(self.features(band(y0, y1, ctx_batch))[0])
             e = e.mean(dim=1)
             if mean is None:
                 mean = e.new_empty(b, e.shape[1], h, w)
@@ -351,7 +375,10 @@ _PAPER = "Munkberg and Hasselgren, Neural Denoising with Layer Embeddings, EGSR 
 register_model(
     "layer",
     config_cls=LayerConfig,
-    presets={"paper": _paper_layer, "medium": _medium_layer, "small": _small_layer},
+    presets={"paper": _paper_layer, "medium": _medium_layer, "small": _small_layer,
+             # layer-medium's network run twice, the second run's context read about the first's output
+             # (LayerConfig.passes; campaign 36): same weights, twice the time.
+             "medium_2pass": lambda: _medium_layer(passes=2)},
     paper=_PAPER + ", Sec. 3 / Appendix A-B",
     description="samples partitioned into 2 layers, 17x17 splat kernel per layer, front-to-back alpha compositing",
 )(LayerDenoiser)

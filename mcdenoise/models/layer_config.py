@@ -75,6 +75,18 @@ class LayerConfig(ConsistencyOptions):
     """Clamp each output pixel to this many (shrunk) standard errors around the mean of its own
     samples (:mod:`mcdenoise.models.consistency`; not in the paper). Set after training, on held-out
     images; None: no clamp."""
+    passes: int = 1
+    """Runs of the network; each run after the first reads its context (the U-Net's input, the mean
+    of the sample embeddings) from the samples moved so that their mean is the previous run's
+    output, each sample keeping its deviation from the samples' mean
+    (:func:`~mcdenoise.models.layer.shifted_samples`); the kernels still filter the samples as given.
+    Not in the paper. Why: campaign 36 (``scripts/kernel_noise_probe.py``) found that the context
+    decides layer-medium's 4-spp bias on scenes we did not make: read from 16 samples while the
+    kernels filter 4, the third-party relMSE fell by a third (0.140 to 0.093). A clean mean with
+    the samples' own spread gives the context the structure of the first pass's output and the
+    noise level of the samples: with no training, 0.140 to 0.095 there (0.94x per image), but 1.32x
+    per image on our own held-out images, where a few explode. So untrained it is no option; it is the
+    start of a training leg (preset ``medium_2pass``, initialised from layer-medium's weights)."""
 
 
 def _paper_layer(**kw: object) -> LayerConfig:
