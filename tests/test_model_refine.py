@@ -329,10 +329,37 @@ def test_every_head_of_an_ensemble_learns() -> None:
         assert all(p.grad is not None and bool(p.grad.abs().sum() > 0) for p in net.parameters()), f"head {i}"
 
 
+def _save_refine(m: torch.nn.Module, path: Path) -> str:
+    """``m`` as a one-file refine stage (preset "small" with its configuration), as training saves it."""
+    import dataclasses
+    import json
+
+    from safetensors.torch import save_file
+
+    cfg = json.loads(json.dumps(dataclasses.asdict(m.config), default=list))
+    save_file({k: v.float().contiguous() for k, v in m.state_dict().items()}, str(path),
+              metadata={"model": "refine", "preset": "small", "model_config": json.dumps(cfg)})
+    return str(path)
+
+
+def _assert_ensemble_is_the_mean(tensors: dict, meta: dict, members: tuple, path: Path, seed: int) -> None:
+    """The ensemble file (``tensors``, ``meta``) saved to ``path`` loads back and gives the mean of
+    ``members``' outputs on a synthetic batch."""
+    from safetensors.torch import save_file
+
+    from mcdenoise.models.weights import load_denoiser
+
+    save_file(tensors, str(path), metadata=meta)
+    ens, _ = load_denoiser(path)
+    batch = synthetic_batch(ens, spp=4, height=16, width=16, generator=torch.Generator().manual_seed(seed))
+    with torch.no_grad():
+        want = sum(m.float()(batch) for m in members) / len(members)
+        torch.testing.assert_close(ens(batch), want, rtol=1e-5, atol=1e-6)
+
+
 def test_ensemble_script_joins_members_over_one_base_and_refuses_another(tmp_path: Path) -> None:
     """Catches a file whose second head is not the second member's, and an ensemble of heads trained
     over different bases (its heads would read features of a base they never saw)."""
-    import dataclasses
     import json
 
     from safetensors import safe_open
@@ -342,11 +369,7 @@ def test_ensemble_script_joins_members_over_one_base_and_refuses_another(tmp_pat
     from repo_scripts import load_script
 
     def save(m: torch.nn.Module, name: str) -> str:
-        cfg = json.loads(json.dumps(dataclasses.asdict(m.config), default=list))
-        path = tmp_path / name
-        save_file({k: v.float().contiguous() for k, v in m.state_dict().items()}, str(path),
-                  metadata={"model": "refine", "preset": "small", "model_config": json.dumps(cfg)})
-        return str(path)
+        return _save_refine(m, tmp_path / name)
 
     a, b = _two_members()
     pa, pb = save(a, "a.safetensors"), save(b, "b.safetensors")
@@ -361,13 +384,7 @@ def test_ensemble_script_joins_members_over_one_base_and_refuses_another(tmp_pat
     script.ensemble([str(old), pb], "small")
     tensors, meta = script.ensemble([pa, pb], "small")
     assert json.loads(meta["model_config"])["heads"] == 2
-    dst = tmp_path / "ens.safetensors"
-    save_file(tensors, str(dst), metadata=meta)
-    ens, _ = load_denoiser(dst)
-    batch = synthetic_batch(ens, spp=4, height=16, width=16, generator=torch.Generator().manual_seed(12))
-    with torch.no_grad():
-        want = (a.float()(batch) + b.float()(batch)) / 2
-        torch.testing.assert_close(ens(batch), want, rtol=1e-5, atol=1e-6)
+    _assert_ensemble_is_the_mean(tensors, meta, (a, b), tmp_path / "ens.safetensors", seed=12)
     other = _model(5).eval()  # another seed: another base
     with pytest.raises(ValueError, match="base tensor .* differs"):
         script.ensemble([pa, save(other, "c.safetensors")], "small")
@@ -393,20 +410,12 @@ def test_ensemble_script_widens_a_head_without_spread_to_what_it_computed(tmp_pa
     """Catches a widened head whose zero columns sit on the wrong input channels (it would read the
     spread features as if they were its own, or shift every feature after the padding), and an
     ensemble of heads with and without spread that forms without being asked (``--widen``)."""
-    import dataclasses
     import json
 
-    from safetensors.torch import save_file
-
-    from mcdenoise.models.weights import load_denoiser
     from repo_scripts import load_script
 
     def save(m: torch.nn.Module, name: str) -> str:
-        cfg = json.loads(json.dumps(dataclasses.asdict(m.config), default=list))
-        path = tmp_path / name
-        save_file({k: v.float().contiguous() for k, v in m.state_dict().items()}, str(path),
-                  metadata={"model": "refine", "preset": "small", "model_config": json.dumps(cfg)})
-        return str(path)
+        return _save_refine(m, tmp_path / name)
 
     plain, spread = _model(0, context=True).double().eval(), _model(0, context=True, spread=True).double().eval()
     with torch.no_grad():
@@ -422,13 +431,7 @@ def test_ensemble_script_widens_a_head_without_spread_to_what_it_computed(tmp_pa
         tensors, meta = script.ensemble(order, "small", widen=True)
         cfg = json.loads(meta["model_config"])
         assert cfg["spread"] is True and cfg["heads"] == 2
-        dst = tmp_path / "ens.safetensors"
-        save_file(tensors, str(dst), metadata=meta)
-        ens, _ = load_denoiser(dst)
-        batch = synthetic_batch(ens, spp=4, height=16, width=16, generator=torch.Generator().manual_seed(13))
-        with torch.no_grad():
-            want = (plain.float()(batch) + spread.float()(batch)) / 2
-            torch.testing.assert_close(ens(batch), want, rtol=1e-5, atol=1e-6)
+        _assert_ensemble_is_the_mean(tensors, meta, (plain, spread), tmp_path / "ens.safetensors", seed=13)
 
 
 def test_sample_halves_split_every_per_sample_tensor_and_nothing_else() -> None:
