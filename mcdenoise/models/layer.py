@@ -376,9 +376,7 @@ register_model(
     "layer",
     config_cls=LayerConfig,
     presets={"paper": _paper_layer, "medium": _medium_layer, "small": _small_layer,
-             # layer-medium's network run twice, the second run's context read about the first's output
-             # (LayerConfig.passes; campaign 36): same weights, twice the time.
-             "medium_2pass": lambda: _medium_layer(passes=2)},
+             "medium_2pass": lambda: _medium_layer(passes=2)},  # LayerConfig.passes: layer-medium run twice
     paper=_PAPER + ", Sec. 3 / Appendix A-B",
     description="samples partitioned into 2 layers, 17x17 splat kernel per layer, front-to-back alpha compositing",
 )(LayerDenoiser)
