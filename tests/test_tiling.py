@@ -163,3 +163,21 @@ def test_window_variance_preset_tiles_without_seams(name):
     plan = plan_tiles(H, W, receptive=rf, align=alignment(model), core=12)
     assert len(plan) >= 6
     assert _rel(_run(model, batch, plan), whole) < 1e-4
+
+
+def test_two_runs_of_the_layer_network_tile_without_seams():
+    """Catches a receptive field measured through one run only: a second run's context reads the
+    first run's output (LayerConfig.passes), so it looks about twice as far, and tiles cut to one
+    run's field would show seams."""
+    torch.manual_seed(0)
+    one, two = build_model("layer", "small").eval(), build_model("layer", "small", passes=2).eval()
+    two.load_state_dict(one.state_dict())
+    rf = receptive_field(two)
+    assert rf > receptive_field(one)
+    two = two.double()
+    batch = synthetic_batch(two, spp=2, height=H, width=W, dtype=torch.float64)
+    with torch.no_grad():
+        whole = two(batch)[0].numpy()
+    plan = plan_tiles(H, W, receptive=rf, align=alignment(two), core=12)
+    assert len(plan) >= 4 and plan.overlap > 0
+    assert _rel(_run(two, batch, plan), whole) < 1e-4
