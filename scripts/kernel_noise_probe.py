@@ -123,6 +123,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--split", default="val")
     ap.add_argument("--spp", type=int, default=4)
     ap.add_argument("--modes", nargs="+", choices=MODES, default=list(MODES), help="which modes run (own always does)")
+    ap.add_argument("--per-image", action="store_true", help="also print each image's total per mode")
     args = ap.parse_args(argv)
     modes = ["own"] + [m for m in args.modes if m != "own"]
     model, info = load_denoiser(args.model)
@@ -154,6 +155,8 @@ def main(argv: list[str] | None = None) -> None:
                     outs[mode].append((own if mode == "own" else layer_output(model, b, **kw[mode]))[0].float().numpy())
         for mode, ys in outs.items():
             per.setdefault(mode, []).append(parts(*split_maps(np.stack(ys), ref)))
+        if args.per_image:
+            print(f"{im.path}: " + "  ".join(f"{m} {per[m][-1][0]:.5f}" for m in modes), flush=True)
     print(f"{args.model}: {len(images)} images, {args.spp} spp, {n} disjoint sample sets each; mean over images")
     print(f"{'mode':10s} {'total':>9s} {'bias':>9s} {'variance':>9s} | variance / own's | total / own's, geo mean of images")
     own = np.array(per["own"])
